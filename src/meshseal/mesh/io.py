@@ -1,0 +1,353 @@
+"""Load meshes from real files through trimesh and write changes back into the same structure.
+
+Design: a file is loaded as a trimesh Scene. Every (node, geometry) instance becomes a *part*; parts are
+concatenated into one `Mesh` with a per-face material index (one material per trimesh geometry, with
+its own texture). Saving copies the Scene, writes each part's normals, uvs, texture (and positions, if
+they changed) back into its geometry and exports in the input's format, so material names, other maps
+(normal, metallic-roughness, ...), node names and transforms survive.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import os
+import re
+import sys
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from ..errors import MeshError
+from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, DEFAULT_SHININESS, DEFAULT_SPECULAR, Material, Mesh
+
+SUPPORTED = {".obj": "obj", ".glb": "glb", ".gltf": "gltf", ".ply": "ply", ".off": "off", ".stl": "stl"}
+UP_AXIS = {"obj": "y", "glb": "y", "gltf": "y", "ply": "z", "off": "z", "stl": "z"}
+
+
+@dataclass
+class Part:
+    """Where one scene instance lives in the concatenated Mesh."""
+
+    node: str
+    geometry: str
+    vertices: slice
+    faces: slice
+    transform: np.ndarray
+
+
+@dataclass
+class Source:
+    """The loaded file: kept so that saving writes changes back into the same structure."""
+
+    path: Path
+    file_type: str
+    scene: object
+    parts: list[Part]
+    original_positions: torch.Tensor
+    input_files: set[Path]
+
+
+def _warn(message: str) -> None:
+    print(f"meshseal: warning: {message}", file=sys.stderr)
+
+
+def _file_type(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED:
+        raise MeshError(f"{path}: unsupported mesh format '{suffix or path.name}' "
+                        f"(supported: {', '.join(sorted(SUPPORTED))})")
+    return SUPPORTED[suffix]
+
+
+def _missing_obj_textures(path: Path) -> tuple[list[str], set[Path]]:
+    """Texture files named by the OBJ's MTL libraries that do not exist, and the ones that do."""
+    missing, present = [], set()
+    try:
+        text = path.read_text(errors="replace")
+    except OSError:
+        return missing, present
+    for mtl_name in re.findall(r"^\s*mtllib\s+(.+?)\s*$", text, flags=re.M):
+        mtl_path = path.parent / mtl_name
+        if not mtl_path.is_file():
+            missing.append(mtl_name)
+            continue
+        present.add(mtl_path.resolve())
+        for line in mtl_path.read_text(errors="replace").splitlines():
+            fields = line.strip().split()
+            if fields and fields[0].lower().startswith("map_"):
+                image = mtl_path.parent / fields[-1]
+                (present.add(image.resolve()) if image.is_file() else missing.append(fields[-1]))
+    return missing, present
+
+
+def _image_to_tensor(image) -> torch.Tensor | None:
+    if image is None:
+        return None
+    if not isinstance(image, Image.Image):
+        return None
+    array = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+    return torch.from_numpy(array.copy())
+
+
+def _material(visual, name: str) -> Material:
+    """The seed's material block from a trimesh visual (Simple or PBR material)."""
+    result = Material(name=name)
+    material = getattr(visual, "material", None)
+    if material is None:
+        return result
+    result.name = getattr(material, "name", None) or name
+    if hasattr(material, "baseColorFactor"):  # PBR (glTF)
+        factor = material.baseColorFactor
+        if factor is not None:
+            result.diffuse = torch.tensor(np.asarray(factor, dtype=np.float32)[:3] / 255.0)
+        result.texture = _image_to_tensor(material.baseColorTexture)
+    else:
+        for key in ("ambient", "diffuse", "specular"):
+            value = getattr(material, key, None)
+            if value is not None:
+                setattr(result, key, torch.tensor(np.asarray(value, dtype=np.float32)[:3] / 255.0))
+        # An MTL with Ka 0 0 0 would render ambient-black; keep the seed's ambient term meaningful.
+        if float(result.ambient.max()) == 0.0:
+            result.ambient = torch.full((3,), DEFAULT_AMBIENT)
+        if getattr(material, "glossiness", None) is not None:
+            result.shininess = float(material.glossiness)
+        result.texture = _image_to_tensor(material.image)
+    if result.texture is not None and float(result.diffuse.max()) == 0.0:
+        result.diffuse = torch.full((3,), DEFAULT_DIFFUSE)
+    return result
+
+
+def load(path, up_axis: str | None = None) -> Mesh:
+    """Load a mesh file (OBJ+MTL+images, GLB/glTF, PLY, OFF, STL) as one concatenated `Mesh`.
+
+    Raises MeshError with a one-line message for anything unusable. A texture file that is missing
+    is a warning: the material falls back to its flat diffuse colour.
+    """
+    import trimesh
+
+    path = Path(path)
+    file_type = _file_type(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise MeshError(f"{path}: file is empty")
+    input_files = {path.resolve()}
+    if file_type == "obj":
+        missing, present = _missing_obj_textures(path)
+        input_files |= present
+        for name in missing:
+            _warn(f"{path}: texture or material file '{name}' not found; using the flat diffuse colour")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scene = trimesh.load(str(path), file_type=file_type, force="scene", process=False)
+    except MeshError:
+        raise
+    except Exception as error:  # trimesh raises many kinds on corrupt input
+        detail = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise MeshError(f"{path}: cannot read as {file_type.upper()}: {detail[:200]}") from None
+    if file_type == "gltf":
+        input_files |= {p.resolve() for p in path.parent.iterdir() if p.suffix.lower() in
+                        {".bin", ".png", ".jpg", ".jpeg", ".webp"}}
+    return _from_scene(scene, path, file_type, input_files, up_axis or UP_AXIS[file_type])
+
+
+def _from_scene(scene, path: Path, file_type: str, input_files: set[Path], up_axis: str) -> Mesh:
+    import trimesh
+
+    positions, normals, uvs, faces, face_material = [], [], [], [], []
+    materials: list[Material] = []
+    material_index: dict[int, int] = {}
+    parts: list[Part] = []
+    n_vertices = n_faces = 0
+    any_uv = False
+    for node in scene.graph.nodes_geometry:
+        transform, geometry_name = scene.graph[node]
+        geometry = scene.geometry.get(geometry_name)
+        if not isinstance(geometry, trimesh.Trimesh) or len(geometry.faces) == 0:
+            continue
+        vertices = np.asarray(geometry.vertices, dtype=np.float64)
+        triangles = np.asarray(geometry.faces, dtype=np.int64)
+        if not np.isfinite(vertices).all():
+            raise MeshError(f"{path}: vertex positions contain NaN or infinity (in '{geometry_name}')")
+        if triangles.min() < 0 or triangles.max() >= len(vertices):
+            raise MeshError(f"{path}: face indices out of range (in '{geometry_name}', "
+                            f"{len(vertices)} vertices)")
+        world = vertices @ transform[:3, :3].T + transform[:3, 3]
+        normal_matrix = np.linalg.inv(transform[:3, :3]).T
+        local_normals = np.asarray(geometry.vertex_normals, dtype=np.float64)
+        world_normals = local_normals @ normal_matrix.T
+        world_normals /= np.maximum(np.linalg.norm(world_normals, axis=1, keepdims=True), 1e-12)
+        uv = getattr(geometry.visual, "uv", None)
+        if uv is not None and len(uv) == len(vertices) and np.isfinite(uv).all():
+            any_uv = True
+            uvs.append(np.asarray(uv, dtype=np.float64))
+        else:
+            uvs.append(np.zeros((len(vertices), 2)))
+        key = id(getattr(geometry.visual, "material", None) or geometry)
+        if key not in material_index:
+            material_index[key] = len(materials)
+            materials.append(_material(geometry.visual, geometry_name))
+        positions.append(world)
+        normals.append(world_normals)
+        faces.append(triangles + n_vertices)
+        face_material.append(np.full(len(triangles), material_index[key], dtype=np.int64))
+        parts.append(Part(str(node), geometry_name, slice(n_vertices, n_vertices + len(vertices)),
+                          slice(n_faces, n_faces + len(triangles)), np.asarray(transform)))
+        n_vertices += len(vertices)
+        n_faces += len(triangles)
+    if n_faces == 0:
+        raise MeshError(f"{path}: contains no triangle faces")
+    position_tensor = torch.from_numpy(np.concatenate(positions)).float()
+    mesh = Mesh(
+        positions=position_tensor,
+        normals=torch.from_numpy(np.concatenate(normals)).float(),
+        faces=torch.from_numpy(np.concatenate(faces)),
+        uvs=torch.from_numpy(np.concatenate(uvs)).float() if any_uv else None,
+        face_material=torch.from_numpy(np.concatenate(face_material)),
+        materials=materials or [Material()],
+        up_axis=up_axis,
+    )
+    mesh.source = Source(path, file_type, scene, parts, position_tensor.clone(), input_files)
+    return mesh
+
+
+# ---------------------------------------------------------------- saving
+
+
+def _tensor_to_image(texture: torch.Tensor, like) -> Image.Image:
+    array = (texture.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    image = Image.fromarray(array, "RGB")
+    if isinstance(like, Image.Image) and like.mode in ("RGBA", "LA") and like.size == image.size:
+        image.putalpha(like.getchannel("A"))
+    return image
+
+
+def _write_back(mesh: Mesh) -> object:
+    """A copy of the source scene with the mesh's attributes written into its geometries."""
+    source: Source = mesh.source
+    scene = copy.deepcopy(source.scene)
+    positions_changed = not torch.equal(mesh.positions.detach().cpu(), source.original_positions)
+    done: set[str] = set()
+    for part in source.parts:
+        if part.geometry in done:  # an instanced geometry is written from its first instance
+            continue
+        done.add(part.geometry)
+        geometry = scene.geometry[part.geometry]
+        inverse = np.linalg.inv(part.transform)
+        if positions_changed:
+            world = mesh.positions[part.vertices].detach().cpu().double().numpy()
+            geometry.vertices = world @ inverse[:3, :3].T + inverse[:3, 3]
+        world_normals = mesh.normals[part.vertices].detach().cpu().double().numpy()
+        local = world_normals @ part.transform[:3, :3]  # inverse of the inverse-transpose
+        local /= np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-12)
+        geometry.vertex_normals = local
+        visual = geometry.visual
+        if mesh.uvs is not None and hasattr(visual, "uv"):
+            visual.uv = mesh.uvs[part.vertices].detach().cpu().double().numpy()
+        material_id = int(mesh.face_material[part.faces.start]) if part.faces.stop > part.faces.start else 0
+        texture = mesh.materials[material_id].texture
+        material = getattr(visual, "material", None)
+        if texture is not None and material is not None:
+            if hasattr(material, "baseColorTexture"):
+                material.baseColorTexture = _tensor_to_image(texture, material.baseColorTexture)
+            elif hasattr(material, "image"):
+                material.image = _tensor_to_image(texture, material.image)
+    return scene
+
+
+def _export(scene, file_type: str, stem: str) -> dict[str, bytes]:
+    """The exported files as {relative name: bytes}."""
+    import trimesh
+    from trimesh.exchange.obj import export_obj
+
+    if file_type == "obj":
+        text, extra = export_obj(scene, include_normals=True, include_texture=True, return_texture=True,
+                                 mtl_name=f"{stem}.mtl", header="meshseal")
+        files = {f"{stem}.obj": text.encode()}
+        renames = {name: f"{stem}_{name}" for name in extra if name != f"{stem}.mtl"}
+        for name, data in extra.items():
+            if name == f"{stem}.mtl":
+                mtl = data.decode()
+                for old, new in renames.items():
+                    mtl = re.sub(rf"(?<=\s){re.escape(old)}(?=\s|$)", new, mtl)
+                files[name] = mtl.encode()
+            else:
+                files[renames[name]] = data
+        return files
+    if file_type == "glb":
+        return {f"{stem}.glb": trimesh.exchange.gltf.export_glb(scene, include_normals=True)}
+    if file_type == "gltf":
+        exported = trimesh.exchange.gltf.export_gltf(scene, include_normals=True)
+        return {(f"{stem}.gltf" if name == "model.gltf" else name): data for name, data in exported.items()}
+    geometry = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)
+    data = geometry.export(file_type=file_type)
+    return {f"{stem}.{file_type}": data if isinstance(data, bytes) else data.encode()}
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file in the same folder and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            stream.write(data)
+        os.replace(temp, path)
+    except BaseException:
+        if os.path.exists(temp):
+            os.unlink(temp)
+        raise
+
+
+def save(mesh: Mesh, path) -> list[Path]:
+    """Save `mesh` in the format of `path`; returns the files written.
+
+    A mesh loaded from a file is written back into that file's structure (its format must match the
+    output's). Never overwrites any of the input's files. Every file is written atomically.
+    """
+    import trimesh
+
+    path = Path(path)
+    file_type = _file_type(path)
+    source: Source | None = mesh.source
+    if source is not None:
+        if source.file_type != file_type and not (source.file_type in ("glb", "gltf") and file_type in ("glb", "gltf")):
+            raise MeshError(f"{path}: output format must match the input's ({source.path.suffix})")
+        scene = _write_back(mesh)
+    else:
+        scene = trimesh.Scene(_to_trimesh(mesh))
+    files = _export(scene, file_type, path.stem)
+    targets = {path.parent / name: data for name, data in files.items()}
+    protected = source.input_files if source is not None else set()
+    for target in targets:
+        if target.resolve() in protected:
+            raise MeshError(f"{target}: refusing to overwrite an input file; choose another output path")
+    for target, data in targets.items():
+        atomic_write(target, data)
+    return list(targets)
+
+
+def _to_trimesh(mesh: Mesh):
+    """A trimesh geometry for a Mesh built in memory (single material)."""
+    import trimesh
+
+    visual = None
+    if mesh.uvs is not None:
+        texture = mesh.materials[0].texture
+        image = _tensor_to_image(texture, None) if texture is not None else None
+        material = trimesh.visual.material.SimpleMaterial(image=image, name=mesh.materials[0].name)
+        visual = trimesh.visual.TextureVisuals(uv=mesh.uvs.detach().cpu().numpy(), material=material)
+    return trimesh.Trimesh(vertices=mesh.positions.detach().cpu().numpy(), faces=mesh.faces.cpu().numpy(),
+                           vertex_normals=mesh.normals.detach().cpu().numpy(), visual=visual, process=False)
+
+
+def image_bytes(image: Image.Image, fmt: str = "PNG") -> bytes:
+    buffer = io.BytesIO()
+    image.save(buffer, format=fmt)
+    return buffer.getvalue()

@@ -1,0 +1,101 @@
+"""Preprocessing used by training and the data builder: normalise, simplify, UVs, normals, up axis."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from ..errors import MeshError
+from .core import Mesh
+
+
+def vertex_normals(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Area-weighted vertex normals (V, 3) from positions (V, 3) and faces (F, 3)."""
+    corners = positions[faces]  # (F, 3, 3)
+    face_normals = torch.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=-1)
+    normals = torch.zeros_like(positions)
+    for k in range(3):
+        normals.index_add_(0, faces[:, k], face_normals)
+    fallback = torch.tensor([0.0, 0.0, 1.0], dtype=positions.dtype, device=positions.device)
+    length = normals.norm(dim=-1, keepdim=True)
+    return torch.where(length > 1e-12, normals / length.clamp_min(1e-12), fallback)
+
+
+def normalize(mesh: Mesh) -> Mesh:
+    """Centre the bounding box at the origin and scale uniformly so the largest extent spans [-1, 1]."""
+    low, high = mesh.positions.min(dim=0).values, mesh.positions.max(dim=0).values
+    scale = (high - low).max().clamp_min(1e-12) / 2.0
+    return replace(mesh, positions=(mesh.positions - (low + high) / 2.0) / scale, source=None)
+
+
+def to_z_up(mesh: Mesh) -> Mesh:
+    """Rotate a Y-up mesh into the canonical Z-up frame: (x, y, z) -> (x, -z, y)."""
+    if mesh.up_axis == "z":
+        return mesh
+    rotation = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=mesh.positions.dtype)
+    return replace(mesh, positions=mesh.positions @ rotation.T, normals=mesh.normals @ rotation.T,
+                   up_axis="z", source=None)
+
+
+def spherical_uv(positions: torch.Tensor) -> torch.Tensor:
+    """Spherical texture coordinates around the origin in the Z-up frame (the seed's mapping)."""
+    x, y, z = positions.unbind(-1)
+    radius = positions.norm(dim=-1).clamp_min(1e-12)
+    u = 0.5 + torch.atan2(y, x) / (2.0 * math.pi)
+    v = 0.5 + torch.asin((z / radius).clamp(-1.0, 1.0)) / math.pi
+    return torch.stack([u, v], dim=-1)
+
+
+def ensure_uvs(mesh: Mesh) -> Mesh:
+    """Give a mesh without texture coordinates the spherical mapping of its normalised positions."""
+    if mesh.uvs is not None:
+        return mesh
+    centred = mesh.positions - (mesh.positions.min(0).values + mesh.positions.max(0).values) / 2
+    return replace(mesh, uvs=spherical_uv(to_z_up(replace(mesh, positions=centred)).positions))
+
+
+def simplify(mesh: Mesh, target_faces: int) -> Mesh:
+    """Quadric-error simplification to about `target_faces` faces (fast-simplification).
+
+    UVs and the material of each face follow the surviving vertices; normals are recomputed.
+    A mesh already at or below the target is returned unchanged.
+    """
+    import fast_simplification
+
+    if mesh.n_faces <= target_faces:
+        return mesh
+    points = mesh.positions.detach().cpu().double().numpy()
+    triangles = mesh.faces.cpu().numpy().astype(np.int64)
+    reduction = 1.0 - target_faces / mesh.n_faces
+    try:
+        _, _, collapses = fast_simplification.simplify(points, triangles, reduction, return_collapses=True)
+        new_points, new_faces, mapping = fast_simplification.replay_simplification(points, triangles, collapses)
+    except Exception as error:
+        raise MeshError(f"simplification failed: {error}") from None
+    if len(new_faces) == 0:
+        raise MeshError("simplification removed every face")
+    mapping = np.asarray(mapping, dtype=np.int64)
+    # The attributes of a new vertex come from one original vertex that collapsed into it.
+    representative = np.zeros(len(new_points), dtype=np.int64)
+    representative[mapping[::-1]] = np.arange(len(mapping))[::-1]
+    vertex_material = np.zeros(len(points), dtype=np.int64)
+    vertex_material[triangles.reshape(-1)] = np.repeat(mesh.face_material.cpu().numpy(), 3)
+    faces = torch.from_numpy(np.asarray(new_faces, dtype=np.int64))
+    positions = torch.from_numpy(np.asarray(new_points)).to(mesh.positions.dtype)
+    uvs = None if mesh.uvs is None else mesh.uvs[torch.from_numpy(representative)]
+    face_material = torch.from_numpy(vertex_material[representative][np.asarray(new_faces)[:, 0]])
+    return replace(mesh, positions=positions, normals=vertex_normals(positions, faces), faces=faces,
+                   uvs=uvs, face_material=face_material, source=None)
+
+
+def validate(mesh: Mesh) -> None:
+    """Raise MeshError unless the mesh is renderable (finite values, faces in range)."""
+    if mesh.n_faces == 0:
+        raise MeshError("mesh has no faces")
+    if not torch.isfinite(mesh.positions).all():
+        raise MeshError("vertex positions contain NaN or infinity")
+    if int(mesh.faces.min()) < 0 or int(mesh.faces.max()) >= mesh.n_vertices:
+        raise MeshError("face indices out of range")

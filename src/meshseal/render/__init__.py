@@ -1,0 +1,20 @@
+"""Rendering: cameras, lights, rasterizer, interpolation, textures, Phong shader, splatting, renderers.
+
+Small composable primitives (like nvdiffrast's) laid out one file per stage (like PyTorch3D's), and a
+`MeshRenderer` that composes them. External renderers implement the same `Renderer` protocol.
+"""
+
+from .cameras import Cameras, cameras_from_eyes, look_at, perspective, sample_any_view_cameras, sample_seed_cameras
+from .interpolate import interpolate, scatter_to_image
+from .lighting import PointLights, lights_at, sample_any_lights, sample_seed_lights
+from .rasterizer import Fragments, clip_to_screen, rasterize
+from .renderer import MeshBatch, MeshRenderer, Renderer, RenderOutput
+from .shader import PhongShader
+from .splatter import splat
+from .texture import sample_texture, sample_textures
+
+__all__ = ["Cameras", "cameras_from_eyes", "look_at", "perspective", "sample_any_view_cameras",
+           "sample_seed_cameras", "interpolate", "scatter_to_image", "PointLights", "lights_at",
+           "sample_any_lights", "sample_seed_lights", "Fragments", "clip_to_screen", "rasterize", "MeshBatch",
+           "MeshRenderer", "Renderer", "RenderOutput", "PhongShader", "splat", "sample_texture",
+           "sample_textures"]

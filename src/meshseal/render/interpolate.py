@@ -1,0 +1,27 @@
+"""Interpolation of per-vertex attributes at fragments, and fragments back to images."""
+
+from __future__ import annotations
+
+import torch
+
+from .rasterizer import Fragments
+
+
+def interpolate(attributes: torch.Tensor, fragments: Fragments, perspective: bool = True) -> torch.Tensor:
+    """Interpolate per-vertex attributes (B, V, C) at the fragments -> (P, C)."""
+    values = attributes[fragments.batch.unsqueeze(1) if attributes.shape[0] > 1
+                        else torch.zeros_like(fragments.batch).unsqueeze(1), fragments.vertex]
+    weights = fragments.bary if perspective else fragments.screen_bary
+    return (values * weights.unsqueeze(-1)).sum(dim=1)
+
+
+def scatter_to_image(values: torch.Tensor, fragments: Fragments, fill=0.0) -> torch.Tensor:
+    """Foreground values (P, C) -> image (B, H, W, C) with `fill` on the background."""
+    n_batch, height, width = fragments.shape
+    channels = values.shape[-1]
+    if torch.is_tensor(fill):
+        image = fill.to(values.dtype).expand(n_batch * height * width, channels).clone()
+    else:
+        image = values.new_full((n_batch * height * width, channels), float(fill))
+    image = image.index_copy(0, fragments.pixel, values)
+    return image.reshape(n_batch, height, width, channels)

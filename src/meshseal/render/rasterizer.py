@@ -1,0 +1,139 @@
+"""Rasterization: a compiled z-buffer for visibility, then differentiable barycentrics in torch.
+
+Visibility (which triangle is front-most at each pixel centre) has no useful gradient, so it runs in a
+numba kernel on the CPU. The perspective-correct barycentrics of the foreground pixels are then
+recomputed in torch from the clip-space vertices, so gradients reach vertex positions and everything
+interpolated with them. On CUDA tensors the z-buffer still runs on the CPU copy of the projected
+vertices (a few hundred KB); everything else stays on the device.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+
+
+@numba.njit(cache=True)
+def _zbuffer_one(xy, z, w, faces, near, face_out, depth):  # pragma: no cover - compiled
+    height, width = face_out.shape
+    for f in range(faces.shape[0]):
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        if w[i0] <= near or w[i1] <= near or w[i2] <= near:
+            continue
+        x0, y0 = xy[i0, 0], xy[i0, 1]
+        x1, y1 = xy[i1, 0], xy[i1, 1]
+        x2, y2 = xy[i2, 0], xy[i2, 1]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if abs(area) < 1e-12:
+            continue
+        col_lo = max(int(math.ceil(min(x0, x1, x2) - 0.5)), 0)
+        col_hi = min(int(math.floor(max(x0, x1, x2) - 0.5)), width - 1)
+        row_lo = max(int(math.ceil(min(y0, y1, y2) - 0.5)), 0)
+        row_hi = min(int(math.floor(max(y0, y1, y2) - 0.5)), height - 1)
+        z0, z1, z2 = z[i0], z[i1], z[i2]
+        inv_area = 1.0 / area
+        for row in range(row_lo, row_hi + 1):
+            py = row + 0.5
+            for col in range(col_lo, col_hi + 1):
+                px = col + 0.5
+                l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv_area
+                l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv_area
+                l2 = 1.0 - l0 - l1
+                if l0 < 0.0 or l1 < 0.0 or l2 < 0.0:
+                    continue
+                depth_here = l0 * z0 + l1 * z1 + l2 * z2
+                if depth_here < -1.0 or depth_here > 1.0:
+                    continue
+                if depth_here < depth[row, col]:
+                    depth[row, col] = depth_here
+                    face_out[row, col] = f
+
+
+@numba.njit(parallel=True, cache=True)
+def _zbuffer(xy, z, w, faces, near, face_out, depth):  # pragma: no cover - compiled
+    n_faces_sets = faces.shape[0]
+    for b in numba.prange(xy.shape[0]):
+        _zbuffer_one(xy[b], z[b], w[b], faces[min(np.int64(b), n_faces_sets - 1)], near, face_out[b], depth[b])
+
+
+@dataclass
+class Fragments:
+    """The visible surface at each foreground pixel.
+
+    pix_to_face: (B, H, W) long, the front-most face index (within its batch element) or -1.
+    pixel: (P,) flat index into B*H*W of each foreground pixel; batch, face: (P,) long;
+    bary: (P, 3) perspective-correct barycentrics (differentiable w.r.t. the clip-space vertices);
+    vertex: (P, 3) the face's vertex indices; screen_bary: (P, 3) screen-space barycentrics.
+    """
+
+    pix_to_face: torch.Tensor
+    pixel: torch.Tensor
+    batch: torch.Tensor
+    face: torch.Tensor
+    vertex: torch.Tensor
+    bary: torch.Tensor
+    screen_bary: torch.Tensor
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.pix_to_face.shape)
+
+
+def clip_to_screen(clip: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(..., 4) clip coordinates -> (..., 2) pixel coordinates (x right, y down, row 0 on top)."""
+    w = clip[..., 3:4]
+    ndc = clip[..., :2] / w
+    return torch.stack([(ndc[..., 0] + 1.0) * 0.5 * width, (1.0 - ndc[..., 1]) * 0.5 * height], dim=-1)
+
+
+def _batched_faces(faces: torch.Tensor, n_batch: int) -> torch.Tensor:
+    return faces.unsqueeze(0) if faces.dim() == 2 else faces
+
+
+def visible_faces(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int,
+                  near: float = 1e-5) -> torch.Tensor:
+    """(B, H, W) index of the front-most face at each pixel centre, -1 for background (no gradient)."""
+    with torch.no_grad():
+        clip64 = clip.detach().to("cpu", torch.float64)
+        xy = clip_to_screen(clip64, height, width).numpy()
+        z = (clip64[..., 2] / clip64[..., 3]).numpy()
+        w = clip64[..., 3].numpy()
+        face_array = _batched_faces(faces, clip.shape[0]).detach().to("cpu", torch.int64).numpy()
+        n_batch = clip.shape[0]
+        face_out = np.full((n_batch, height, width), -1, dtype=np.int64)
+        depth = np.full((n_batch, height, width), np.inf, dtype=np.float64)
+        _zbuffer(np.ascontiguousarray(xy), np.ascontiguousarray(z), np.ascontiguousarray(w),
+                 np.ascontiguousarray(face_array), near, face_out, depth)
+    return torch.from_numpy(face_out).to(clip.device)
+
+
+def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int) -> Fragments:
+    """Rasterize clip-space vertices (B, V, 4) with faces (F, 3) shared or (B, F, 3) per element."""
+    n_batch = clip.shape[0]
+    pix_to_face = visible_faces(clip, faces, height, width)
+    flat = pix_to_face.reshape(-1)
+    pixel = torch.nonzero(flat >= 0).squeeze(1)
+    face = flat[pixel]
+    batch = torch.div(pixel, height * width, rounding_mode="floor")
+    within = pixel - batch * height * width
+    row = torch.div(within, width, rounding_mode="floor")
+    col = within - row * width
+    batched_faces = _batched_faces(faces, n_batch)
+    vertex = batched_faces[batch if batched_faces.shape[0] > 1 else torch.zeros_like(batch), face]
+    corners = clip[batch.unsqueeze(1), vertex]  # (P, 3, 4)
+    xy = clip_to_screen(corners, height, width)  # (P, 3, 2)
+    px = (col.to(clip.dtype) + 0.5).unsqueeze(1)
+    py = (row.to(clip.dtype) + 0.5).unsqueeze(1)
+    dx, dy = xy[..., 0] - px, xy[..., 1] - py  # (P, 3)
+    # Signed areas of the sub-triangles opposite each corner, normalised: screen barycentrics.
+    sub = torch.stack([dx[:, 1] * dy[:, 2] - dx[:, 2] * dy[:, 1],
+                       dx[:, 2] * dy[:, 0] - dx[:, 0] * dy[:, 2],
+                       dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]], dim=1)
+    screen_bary = sub / sub.sum(dim=1, keepdim=True)
+    perspective = screen_bary / corners[..., 3]
+    bary = perspective / perspective.sum(dim=1, keepdim=True)
+    return Fragments(pix_to_face, pixel, batch, face, vertex, bary, screen_bary)

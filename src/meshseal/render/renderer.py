@@ -1,0 +1,152 @@
+"""The differentiable mesh renderer: rasterize -> interpolate -> texture -> Phong -> splat."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import torch
+
+from ..mesh.core import Mesh
+from .cameras import Cameras
+from .interpolate import interpolate, scatter_to_image
+from .lighting import PointLights
+from .rasterizer import Fragments, clip_to_screen, rasterize
+from .shader import PhongShader
+from .texture import sample_textures
+
+
+class Renderer(Protocol):
+    """What every backend (ours, OpenGL, Blender, Mitsuba, ...) provides."""
+
+    def render(self, mesh: Mesh, cameras: Cameras, lights: PointLights, width: int, height: int,
+               background=(0.0, 0.0, 0.0)) -> torch.Tensor:
+        """RGBA images (B, H, W, 4) in [0, 1], row 0 on top, one per camera."""
+
+
+@dataclass
+class MeshBatch:
+    """B meshes of one size (or one mesh seen B times) ready for rendering.
+
+    positions, normals: (B, V, 3) (B may be 1 to share); uvs: (B, V, 2) or None; faces: (F, 3) shared or
+    (B, F, 3); face_material: (F,) or (B, F) indices into the material table: textures (list of (3, H, W)
+    or None, or an (M, 3, H, W) stack), ambient/diffuse/specular (M, 3), shininess (M,).
+    """
+
+    positions: torch.Tensor
+    normals: torch.Tensor
+    uvs: torch.Tensor | None
+    faces: torch.Tensor
+    face_material: torch.Tensor
+    textures: list | torch.Tensor
+    ambient: torch.Tensor
+    diffuse: torch.Tensor
+    specular: torch.Tensor
+    shininess: torch.Tensor = field(default=None)
+
+    @classmethod
+    def from_mesh(cls, mesh: Mesh) -> "MeshBatch":
+        """One (possibly multi-material) mesh, shared by every camera of a batch."""
+        materials = mesh.materials
+        device = mesh.positions.device
+        textures = [None if m.texture is None else m.texture.permute(2, 0, 1) for m in materials]
+        return cls(mesh.positions.unsqueeze(0), mesh.normals.unsqueeze(0),
+                   None if mesh.uvs is None else mesh.uvs.unsqueeze(0), mesh.faces, mesh.face_material,
+                   textures, torch.stack([m.ambient for m in materials]).to(device),
+                   torch.stack([m.diffuse for m in materials]).to(device),
+                   torch.stack([m.specular for m in materials]).to(device),
+                   torch.tensor([m.shininess for m in materials], device=device))
+
+    @classmethod
+    def from_tensors(cls, positions: torch.Tensor, normals: torch.Tensor, uvs: torch.Tensor,
+                     faces: torch.Tensor, textures: torch.Tensor) -> "MeshBatch":
+        """B same-size meshes, mesh b textured by textures[b] (B, 3, H, W), default material."""
+        from ..mesh.core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, DEFAULT_SHININESS, DEFAULT_SPECULAR
+
+        n_batch, n_faces = positions.shape[0], faces.shape[-2]
+        face_material = torch.arange(n_batch, device=positions.device).unsqueeze(1).expand(n_batch, n_faces)
+        full = positions.new_full
+        return cls(positions, normals, uvs, faces, face_material, textures, full((n_batch, 3), DEFAULT_AMBIENT),
+                   full((n_batch, 3), DEFAULT_DIFFUSE), full((n_batch, 3), DEFAULT_SPECULAR),
+                   full((n_batch,), DEFAULT_SHININESS))
+
+
+@dataclass
+class RenderOutput:
+    """rgba (B, H, W, 4) composited over the background; fragments for reuse (e.g. masks)."""
+
+    rgba: torch.Tensor
+    fragments: Fragments
+
+    @property
+    def image(self) -> torch.Tensor:
+        """(B, 3, H, W), the layout the networks use."""
+        return self.rgba[..., :3].permute(0, 3, 1, 2)
+
+
+def _per_fragment(table: torch.Tensor, fragments: Fragments) -> torch.Tensor:
+    """Look up a per-face (F,) or (B, F) table at the fragments."""
+    if table.dim() == 1:
+        return table[fragments.face]
+    if table.shape[0] == 1:
+        return table[0, fragments.face]
+    return table[fragments.batch, fragments.face]
+
+
+@dataclass
+class MeshRenderer:
+    """Composes the rasterizer and the Phong shader; `blend` is 'splat' (differentiable silhouettes,
+    antialiased) or 'hard' (exact rasterized colours, as OpenGL without MSAA)."""
+
+    shader: PhongShader = field(default_factory=PhongShader)
+    blend: str = "splat"
+    sigma: float = 0.5
+
+    def __call__(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, height: int, width: int,
+                 background=(0.0, 0.0, 0.0)) -> RenderOutput:
+        n_batch = len(cameras)
+        dtype, device = batch.positions.dtype, batch.positions.device
+        cameras, lights = cameras.to(device, dtype), lights.to(device, dtype)
+        positions = batch.positions.expand(n_batch, -1, -1) if batch.positions.shape[0] == 1 else batch.positions
+        clip = cameras.world_to_clip(positions, width / height)
+        fragments = rasterize(clip, batch.faces, height, width)
+        # One gather for every attribute: world position, normal and uv.
+        normals = batch.normals.expand(n_batch, -1, -1) if batch.normals.shape[0] == 1 else batch.normals
+        attributes = [positions, normals]
+        if batch.uvs is not None:
+            attributes.append(batch.uvs.expand(n_batch, -1, -1) if batch.uvs.shape[0] == 1 else batch.uvs)
+        interpolated = interpolate(torch.cat(attributes, dim=-1), fragments)
+        world, normal = interpolated[:, :3], interpolated[:, 3:6]
+        material = _per_fragment(batch.face_material, fragments)
+        if batch.uvs is None:
+            albedo = world.new_ones(world.shape[0], 3)
+        else:
+            albedo = sample_textures(batch.textures, interpolated[:, 6:8], material)
+        albedo = albedo * batch.diffuse[material]
+        lit = self.shader(world, normal, albedo, cameras.eye[fragments.batch],
+                          lights.position[fragments.batch], lights.intensity[fragments.batch],
+                          batch.ambient[material], batch.specular[material], batch.shininess[material])
+        lit = lit.clamp(0.0, 1.0)
+        background = torch.as_tensor(background, dtype=dtype, device=device)
+        color = scatter_to_image(lit, fragments, background if self.blend == "hard" else 0.0)
+        alpha = (fragments.pix_to_face >= 0).to(dtype)
+        if self.blend == "hard":
+            return RenderOutput(torch.cat([color, alpha.unsqueeze(-1)], dim=-1), fragments)
+        from .splatter import splat
+
+        # Splat positions: the surface point's screen position, barycentrics held fixed (see splatter).
+        corners = clip_to_screen(clip[fragments.batch.unsqueeze(1), fragments.vertex], height, width)
+        surface_xy = (corners * fragments.screen_bary.detach().unsqueeze(-1)).sum(1)
+        rows, cols = torch.meshgrid(torch.arange(height, device=device, dtype=dtype) + 0.5,
+                                    torch.arange(width, device=device, dtype=dtype) + 0.5, indexing="ij")
+        centres = torch.stack([cols, rows], dim=-1).reshape(1, height * width, 2).expand(n_batch, -1, -1)
+        splat_xy = scatter_to_image(surface_xy, fragments, 0.0).reshape(n_batch, height * width, 2)
+        splat_xy = torch.where((alpha.reshape(n_batch, -1, 1) > 0), splat_xy, centres)
+        image, coverage = splat(color, alpha, splat_xy.reshape(n_batch, height, width, 2), background, self.sigma)
+        return RenderOutput(torch.cat([image, coverage.unsqueeze(-1)], dim=-1), fragments)
+
+    def render(self, mesh: Mesh, cameras: Cameras, lights: PointLights, width: int, height: int,
+               background=(0.0, 0.0, 0.0)) -> torch.Tensor:
+        """The `Renderer` protocol: RGBA (B, H, W, 4) of one mesh from each camera."""
+        with torch.no_grad():
+            return self(MeshBatch.from_mesh(mesh), cameras, lights, height, width, background).rgba

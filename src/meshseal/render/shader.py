@@ -1,0 +1,44 @@
+"""Deferred Phong shading of fragments with point lights (the seed's DiffRen shading)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from .lighting import K_AMBIENT, K_DIFFUSE, K_SPECULAR, PointLights, attenuation
+
+
+@dataclass
+class PhongShader:
+    """color = ka*Ka*albedo + sum_lights I/att * (kd*max(n.l,0)*albedo + kr*Ks*max(r.v,0)^shininess).
+
+    Normals are two-sided (flipped to face the camera). See docs/conventions.md.
+    """
+
+    k_ambient: float = K_AMBIENT
+    k_diffuse: float = K_DIFFUSE
+    k_specular: float = K_SPECULAR
+
+    def __call__(self, position: torch.Tensor, normal: torch.Tensor, albedo: torch.Tensor, eye: torch.Tensor,
+                 light_position: torch.Tensor, light_intensity: torch.Tensor, ambient: torch.Tensor,
+                 specular: torch.Tensor, shininess: torch.Tensor) -> torch.Tensor:
+        """Per-fragment inputs (P, 3) (lights (P, L, 3), shininess (P,)) -> colours (P, 3), unclamped."""
+        normal = F.normalize(normal, dim=-1, eps=1e-12)
+        view = F.normalize(eye - position, dim=-1, eps=1e-12)
+        facing = torch.where((normal * view).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(normal.dtype)
+        normal = normal * facing
+        color = self.k_ambient * ambient * albedo
+        to_light = light_position - position.unsqueeze(1)  # (P, L, 3)
+        distance = to_light.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        direction = to_light / distance
+        n_dot_l = (normal.unsqueeze(1) * direction).sum(-1, keepdim=True)
+        scale = light_intensity / attenuation(distance)
+        color = color + (scale * self.k_diffuse * n_dot_l.clamp_min(0.0)).sum(1) * albedo
+        if self.k_specular != 0.0:
+            reflected = 2.0 * n_dot_l * normal.unsqueeze(1) - direction
+            r_dot_v = (reflected * view.unsqueeze(1)).sum(-1, keepdim=True).clamp_min(0.0)
+            highlight = r_dot_v ** shininess.reshape(-1, 1, 1)
+            color = color + (scale * self.k_specular * highlight).sum(1) * specular
+        return color
