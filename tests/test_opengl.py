@@ -210,9 +210,29 @@ def test_triangles_behind_near_are_dropped(renderer):
     normals = torch.tensor([[0.0, 0.0, 1.0]] * 3)
     faces = torch.tensor([[0, 1, 2]])
     lights = lights_at(torch.tensor([[0.0, 0.0, 2.0]]))
-    mesh = Mesh(positions=positions, normals=normals, faces=faces)
-    out = renderer.render(mesh, cameras([[0.0, 0.0, 3.0]]), lights, 32, 32)
-    assert out[..., 3].max() == 0.0
-    mesh.positions = positions * torch.tensor([1.0, 1.0, 0.9])  # w = 0.345 > near: drawn
-    out = renderer.render(mesh, cameras([[0.0, 0.0, 3.0]]), lights, 32, 32)
+    drawn = Mesh(positions=positions * torch.tensor([1.0, 1.0, 0.9]), normals=normals, faces=faces)  # w = 0.345
+    out = renderer.render(drawn, cameras([[0.0, 0.0, 3.0]]), lights, 32, 32)
     assert out[..., 3].max() == 1.0
+    dropped = Mesh(positions=positions, normals=normals, faces=faces)
+    out = renderer.render(dropped, cameras([[0.0, 0.0, 3.0]]), lights, 32, 32)  # same framebuffer: cleared
+    assert out.abs().max() == 0.0
+
+
+def test_chunked_tiles_match(renderer, monkeypatch):
+    import meshseal.render.opengl as opengl
+
+    positions, normals, uvs, faces = quad()
+    textures = torch.rand(3, 3, 8, 8, generator=torch.Generator().manual_seed(2))
+    cams = cameras([[0.0, 0.0, 3.0], [0.5, 0.0, 2.5], [0.0, -0.5, 3.5]])
+    lights = lights_at(torch.tensor([[0.0, 1.0, 2.0]] * 3))
+    whole = renderer.render_batch(positions, normals, uvs, faces, textures, cams, lights, 24, 20)
+    monkeypatch.setattr(opengl, "_MAX_TILE_PIXELS", 2 * 24 * 20)  # two tiles per framebuffer
+    chunked = renderer.render_batch(positions, normals, uvs, faces, textures, cams, lights, 24, 20)
+    assert torch.allclose(whole, chunked, atol=1e-4) and whole[..., 3].sum() > 50
+
+
+def test_no_context_is_one_clear_error():
+    broken = OpenGLRenderer(backend="no-such-backend")
+    with pytest.raises(RuntimeError, match="OpenGL renderer unavailable") as error:
+        broken.render(None, cameras([[0.0, 0.0, 3.0]]), lights_at(torch.zeros(1, 3)), 8, 8)
+    assert "\n" not in str(error.value)

@@ -24,9 +24,11 @@ import torch
 from PIL import Image
 
 from ..errors import MeshError
-from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, DEFAULT_SHININESS, DEFAULT_SPECULAR, Material, Mesh
+from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, Material, Mesh
+from .preprocess import vertex_normals
 
 SUPPORTED = {".obj": "obj", ".glb": "glb", ".gltf": "gltf", ".ply": "ply", ".off": "off", ".stl": "stl"}
+TEXT_FORMATS = {"obj", "off", "gltf"}
 UP_AXIS = {"obj": "y", "glb": "y", "gltf": "y", "ply": "z", "off": "z", "stl": "z"}
 
 
@@ -95,6 +97,18 @@ def _image_to_tensor(image) -> torch.Tensor | None:
     return torch.from_numpy(array.copy())
 
 
+def _file_normals(geometry) -> np.ndarray | None:
+    """The vertex normals stored in the file, if it had usable ones (trimesh keeps them in its cache)."""
+    cache = getattr(getattr(geometry, "_cache", None), "cache", {})
+    normals = cache.get("vertex_normals")
+    if normals is None or len(normals) != len(geometry.vertices):
+        return None
+    normals = np.asarray(normals, dtype=np.float64)
+    if not np.isfinite(normals).all() or (np.linalg.norm(normals, axis=1) < 0.5).any():
+        return None
+    return normals
+
+
 def _material(visual, name: str) -> Material:
     """The seed's material block from a trimesh visual (Simple or PBR material)."""
     result = Material(name=name)
@@ -120,6 +134,12 @@ def _material(visual, name: str) -> Material:
         result.texture = _image_to_tensor(material.image)
     if result.texture is not None and float(result.diffuse.max()) == 0.0:
         result.diffuse = torch.full((3,), DEFAULT_DIFFUSE)
+    texture = result.texture
+    if texture is not None and texture.shape[0] * texture.shape[1] <= 4 and bool((texture == texture[0, 0]).all()):
+        # A uniform placeholder (trimesh invents a 2x2 grey image for UVs without a material):
+        # a flat colour, not a texture. Rendering is unchanged (albedo = texture * diffuse).
+        result.diffuse = result.diffuse * texture[0, 0]
+        result.texture = None
     return result
 
 
@@ -137,6 +157,10 @@ def load(path, up_axis: str | None = None) -> Mesh:
         raise MeshError(f"{path}: no such file")
     if path.stat().st_size == 0:
         raise MeshError(f"{path}: file is empty")
+    if file_type in TEXT_FORMATS:
+        with open(path, "rb") as stream:
+            if b"\x00" in stream.read(1 << 16):
+                raise MeshError(f"{path}: binary data, not a text {file_type.upper()} file")
     input_files = {path.resolve()}
     if file_type == "obj":
         missing, present = _missing_obj_textures(path)
@@ -151,6 +175,8 @@ def load(path, up_axis: str | None = None) -> Mesh:
         raise
     except Exception as error:  # trimesh raises many kinds on corrupt input
         detail = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if isinstance(error, ModuleNotFoundError) and error.name == "charset_normalizer":
+            detail = "not UTF-8 text (install charset-normalizer to read other text encodings)"
         raise MeshError(f"{path}: cannot read as {file_type.upper()}: {detail[:200]}") from None
     if file_type == "gltf":
         input_files |= {p.resolve() for p in path.parent.iterdir() if p.suffix.lower() in
@@ -167,7 +193,9 @@ def _from_scene(scene, path: Path, file_type: str, input_files: set[Path], up_ax
     parts: list[Part] = []
     n_vertices = n_faces = 0
     any_uv = False
-    for node in scene.graph.nodes_geometry:
+    # Parts in node-name order: trimesh's own order depends on the format (OBJ comes back reversed) and
+    # flips on every save/load; node names survive saving, so this keeps vertex order across round trips.
+    for node in sorted(scene.graph.nodes_geometry, key=str):
         transform, geometry_name = scene.graph[node]
         geometry = scene.geometry.get(geometry_name)
         if not isinstance(geometry, trimesh.Trimesh) or len(geometry.faces) == 0:
@@ -181,7 +209,9 @@ def _from_scene(scene, path: Path, file_type: str, input_files: set[Path], up_ax
                             f"{len(vertices)} vertices)")
         world = vertices @ transform[:3, :3].T + transform[:3, 3]
         normal_matrix = np.linalg.inv(transform[:3, :3]).T
-        local_normals = np.asarray(geometry.vertex_normals, dtype=np.float64)
+        local_normals = _file_normals(geometry)
+        if local_normals is None:
+            local_normals = vertex_normals(torch.from_numpy(vertices), torch.from_numpy(triangles)).numpy()
         world_normals = local_normals @ normal_matrix.T
         world_normals /= np.maximum(np.linalg.norm(world_normals, axis=1, keepdims=True), 1e-12)
         uv = getattr(geometry.visual, "uv", None)
@@ -262,12 +292,39 @@ def _write_back(mesh: Mesh) -> object:
     return scene
 
 
+def _normal_keeping_scene(scene):
+    """The same scene, but its dump() keeps each geometry's vertex normals (see _export)."""
+    import trimesh
+
+    class NormalKeepingScene(trimesh.Scene):
+        def dump(self, concatenate: bool = False):
+            result = []
+            for node in self.graph.nodes_geometry:
+                transform, name = self.graph[node]
+                geometry = self.geometry[name]
+                if not isinstance(geometry, trimesh.Trimesh):
+                    continue
+                current = geometry.copy(include_cache=True)  # keeps the vertex normals
+                current.apply_transform(transform)  # transforms them along
+                current.metadata["name"] = name
+                current.metadata["node"] = node
+                result.append(current)
+            return result
+
+    copied = copy.copy(scene)
+    copied.__class__ = NormalKeepingScene
+    return copied
+
+
 def _export(scene, file_type: str, stem: str) -> dict[str, bytes]:
     """The exported files as {relative name: bytes}."""
     import trimesh
     from trimesh.exchange.obj import export_obj
 
     if file_type == "obj":
+        # trimesh's OBJ exporter bakes the scene with Scene.dump(), whose geometry copies drop cached
+        # data, vertex normals included (they would be recomputed from the faces): keep them.
+        scene = _normal_keeping_scene(scene)
         text, extra = export_obj(scene, include_normals=True, include_texture=True, return_texture=True,
                                  mtl_name=f"{stem}.mtl", header="meshseal")
         files = {f"{stem}.obj": text.encode()}

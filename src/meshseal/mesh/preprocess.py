@@ -13,12 +13,28 @@ from .core import Mesh
 
 
 def vertex_normals(positions: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Area-weighted vertex normals (V, 3) from positions (V, 3) and faces (F, 3)."""
+    """Area-weighted vertex normals (V, 3) from positions (V, 3) and faces (F, 3).
+
+    Where the adjacent faces cancel out (double-sided sheets: each triangle twinned with the opposite
+    winding on the same vertices), the faces are first flipped to agree with one of them; shading is
+    two-sided, so the sign does not matter but the direction does.
+    """
     corners = positions[faces]  # (F, 3, 3)
     face_normals = torch.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=-1)
     normals = torch.zeros_like(positions)
+    magnitude = positions.new_zeros(positions.shape[0])
+    reference = torch.zeros_like(positions)
     for k in range(3):
         normals.index_add_(0, faces[:, k], face_normals)
+        magnitude.index_add_(0, faces[:, k], face_normals.norm(dim=-1))
+        reference.index_copy_(0, faces[:, k], face_normals)
+    cancelled = normals.norm(dim=-1) <= 1e-3 * magnitude
+    if bool(cancelled.any()):
+        agreeing = torch.zeros_like(positions)
+        for k in range(3):
+            sign = torch.sign((face_normals * reference[faces[:, k]]).sum(-1, keepdim=True))
+            agreeing.index_add_(0, faces[:, k], face_normals * sign)
+        normals = torch.where(cancelled.unsqueeze(-1), agreeing, normals)
     fallback = torch.tensor([0.0, 0.0, 1.0], dtype=positions.dtype, device=positions.device)
     length = normals.norm(dim=-1, keepdim=True)
     return torch.where(length > 1e-12, normals / length.clamp_min(1e-12), fallback)

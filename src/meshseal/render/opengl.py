@@ -17,7 +17,6 @@ read back with a single glReadPixels.
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import numpy as np
@@ -29,8 +28,8 @@ from .lighting import ATTENUATION, K_AMBIENT, K_DIFFUSE, K_SPECULAR, PointLights
 MAX_LIGHTS = 8
 DEFAULT_MATERIAL = dict(ambient=(0.25, 0.25, 0.25), diffuse=(1.0, 1.0, 1.0), specular=(0.0, 0.0, 0.0),
                         shininess=32.0)
-# Upper bound of framebuffer pixels per chunk of tiles (float32 RGBA: 16 bytes a pixel).
-_MAX_TILE_PIXELS = 16 * 1024 * 1024
+# Upper bound of framebuffer pixels per chunk of tiles (float32 RGBA + depth: 20 bytes a pixel).
+_MAX_TILE_PIXELS = 4 * 1024 * 1024
 
 _VERTEX_SHADER = """
 #version 330
@@ -303,6 +302,7 @@ class OpenGLRenderer:
     def _begin(self, fbo, background) -> None:
         import moderngl
         fbo.use()
+        fbo.viewport = (0, 0, *fbo.size)
         bg = _rgb(background)
         fbo.clear(bg[0], bg[1], bg[2], 0.0, depth=1.0)
         self.ctx.enable_only(moderngl.DEPTH_TEST)
@@ -321,6 +321,8 @@ class OpenGLRenderer:
         mvp, eye, light_pos, light_int = self._view_uniforms(cameras, lights, width, height)
         batch = mvp.shape[0]
 
+        if getattr(mesh, "normals", None) is None:
+            raise ValueError("OpenGL renderer: the mesh has no vertex normals")
         positions = _np(mesh.positions)
         normals = _np(mesh.normals)
         n_vertices = positions.shape[0]

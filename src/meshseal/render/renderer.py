@@ -104,6 +104,7 @@ class MeshRenderer:
 
     def __call__(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, height: int, width: int,
                  background=(0.0, 0.0, 0.0)) -> RenderOutput:
+        """Render B images; `background` is one RGB colour (3,) or one per image (B, 3)."""
         n_batch = len(cameras)
         dtype, device = batch.positions.dtype, batch.positions.device
         cameras, lights = cameras.to(device, dtype), lights.to(device, dtype)
@@ -127,10 +128,11 @@ class MeshRenderer:
                           lights.position[fragments.batch], lights.intensity[fragments.batch],
                           batch.ambient[material], batch.specular[material], batch.shininess[material])
         lit = lit.clamp(0.0, 1.0)
-        background = torch.as_tensor(background, dtype=dtype, device=device)
-        color = scatter_to_image(lit, fragments, background if self.blend == "hard" else 0.0)
+        background = torch.as_tensor(background, dtype=dtype, device=device).reshape(-1, 3).expand(n_batch, 3)
+        color = scatter_to_image(lit, fragments, 0.0)
         alpha = (fragments.pix_to_face >= 0).to(dtype)
         if self.blend == "hard":
+            color = color + (1.0 - alpha.unsqueeze(-1)) * background[:, None, None, :]
             return RenderOutput(torch.cat([color, alpha.unsqueeze(-1)], dim=-1), fragments)
         from .splatter import splat
 

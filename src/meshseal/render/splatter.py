@@ -32,7 +32,7 @@ def splat(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor, back
     """Splat colours (B, H, W, C) with coverage alpha (B, H, W) at positions (B, H, W, 2) in pixels.
 
     splat_xy must lie at (or within a small fraction of a pixel of) the pixel centres (j + 0.5, i + 0.5).
-    Returns the composited image (B, H, W, C) over `background` (C,) and the coverage (B, H, W).
+    Returns the composited image (B, H, W, C) over `background` (C,) or (B, C) and the coverage (B, H, W).
     """
     n_batch, height, width, channels = color.shape
     rows = torch.arange(height, dtype=color.dtype, device=color.device).reshape(1, height, 1) + 0.5
@@ -50,5 +50,5 @@ def splat(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor, back
     accumulated = F.conv2d(stacked, weight, padding=1)  # (B, C+1, H, W)
     coverage = accumulated[:, -1]
     image = accumulated[:, :-1] / coverage.clamp_min(1.0).unsqueeze(1)
-    image = image + (1.0 - coverage.clamp(max=1.0)).unsqueeze(1) * background.to(color.dtype).reshape(1, -1, 1, 1)
+    image = image + (1.0 - coverage.clamp(max=1.0)).unsqueeze(1) * background.to(color.dtype).reshape(-1, channels, 1, 1)
     return image.permute(0, 2, 3, 1), coverage.clamp(max=1.0)

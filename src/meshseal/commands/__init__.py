@@ -1,0 +1,1 @@
+"""Subcommands of the `meshseal` command line (see meshseal.cli)."""

@@ -1,0 +1,194 @@
+"""`meshseal embed | detect | eval | train | models`: the watermarking model from the command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from ..errors import MeshsealError
+from ._common import positive_int
+
+
+def register(subparsers) -> None:
+    embed = subparsers.add_parser("embed", help="hide a message in a mesh file",
+                                  description="Watermark a mesh: writes the same format, never over the input.")
+    embed.add_argument("input", type=Path, help="mesh file (.obj, .glb, .gltf, .ply, .off, .stl)")
+    embed.add_argument("-o", "--output", type=Path, required=True, help="output mesh file (same format)")
+    embed.add_argument("--message", required=True, help="the bits to hide: a string of 0/1 of the model's length")
+    embed.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
+    embed.add_argument("--views", type=positive_int(64), default=4, help="views for the rendered PSNR/SSIM (default 4)")
+    embed.add_argument("--up", choices=("y", "z"), default=None, help="the file's up axis (default: by format)")
+    embed.add_argument("--json", action="store_true", help="print one JSON object")
+    embed.set_defaults(func=run_embed)
+
+    detect = subparsers.add_parser("detect", help="read the message from pictures of a marked mesh",
+                                   description="Decode each picture (any size, any plain background).")
+    detect.add_argument("images", type=Path, nargs="+", help="image files (PNG, JPEG, ...)")
+    detect.add_argument("--model", default=None, help="shipped model name or .safetensors path")
+    detect.add_argument("--json", action="store_true", help="one JSON object per image, one per line")
+    detect.set_defaults(func=run_detect)
+
+    evaluate = subparsers.add_parser("eval", help="measure a model on a dataset split")
+    evaluate.add_argument("--data", type=Path, required=True, help="dataset folder (meshseal data build)")
+    evaluate.add_argument("--split", default="test", choices=("train", "test", "test_cc0", "all"))
+    evaluate.add_argument("--model", default=None, help="shipped model name or .safetensors path")
+    evaluate.add_argument("--views", type=positive_int(100), default=1, help="views per mesh (default 1)")
+    evaluate.add_argument("--meshes", type=int, default=None, help="at most this many meshes (default all)")
+    evaluate.add_argument("--sampler", choices=("seed", "any"), default="seed", help="camera/light ranges")
+    evaluate.add_argument("--size", type=positive_int(2048), default=128, help="render size (default 128)")
+    evaluate.add_argument("--distortion-3d", type=float, default=0.0, help="3D distortion strength (0..1)")
+    evaluate.add_argument("--distortion-2d", type=float, default=0.0, help="2D attack strength (0..1)")
+    evaluate.add_argument("--seed", type=int, default=0)
+    evaluate.add_argument("--json", action="store_true", help="print one JSON object")
+    evaluate.set_defaults(func=run_eval)
+
+    train = subparsers.add_parser("train", help="train a model from a config")
+    train.add_argument("--config", type=Path, required=True, help="YAML config (see configs/)")
+    train.add_argument("--out", type=Path, default=None, help="run folder (default runs/<config name>)")
+    train.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    train.add_argument("--data", type=Path, default=None, help="override the config's dataset folder")
+    train.set_defaults(func=run_train)
+
+    models = subparsers.add_parser("models", help="list the shipped models")
+    models.add_argument("--json", action="store_true", help="print a JSON list")
+    models.set_defaults(func=run_models)
+
+
+def _render_pair(original, marked, views: int, size: int = 256):
+    """Render both meshes from the same seeded views (canonical frame) -> (B, 3, H, W) each."""
+    import torch
+
+    from ..mesh import normalize, to_z_up
+    from ..pipeline import sample_views
+    from ..render import MeshBatch, MeshRenderer
+
+    cameras, lights = sample_views(views, "seed", torch.Generator().manual_seed(0))
+    renderer = MeshRenderer()
+    images = []
+    for mesh in (original, marked):
+        canonical = normalize(to_z_up(mesh))
+        with torch.no_grad():
+            images.append(renderer(MeshBatch.from_mesh(canonical), cameras, lights, size, size).image)
+    return images
+
+
+def embed_report(original, marked, views: int) -> dict:
+    """How much the mark changed the mesh: texture PSNR, normal angle, uv shift, rendered PSNR/SSIM."""
+    import torch
+
+    from ..losses import normal_angle_deg, psnr, ssim
+
+    texture_psnr, shifts = [], []
+    for before, after in zip(original.materials, marked.materials):
+        if before.texture is not None and after.texture is not None:
+            texture_psnr.append(float(psnr(after.texture.permute(2, 0, 1)[None], before.texture.permute(2, 0, 1)[None])))
+    if original.uvs is not None and marked.uvs is not None:
+        sizes = torch.tensor([max(m.texture.shape[:2]) if m.texture is not None else 0 for m in original.materials],
+                             dtype=torch.float32)
+        per_vertex = torch.zeros(original.n_vertices)
+        per_vertex[original.faces.reshape(-1)] = sizes[original.face_material].repeat_interleave(3)
+        shifts.append(float(((marked.uvs - original.uvs).norm(dim=-1) * per_vertex).mean()))
+    render_a, render_b = _render_pair(original, marked, views)
+    return {
+        "psnr_texture": round(sum(texture_psnr) / len(texture_psnr), 3) if texture_psnr else None,
+        "normal_angle_deg": round(float(normal_angle_deg(marked.normals, original.normals)), 4),
+        "uv_shift_texels": round(shifts[0], 4) if shifts else 0.0,
+        "psnr_render": round(float(psnr(render_b, render_a).mean()), 3),
+        "ssim_render": round(float(ssim(render_b, render_a).mean()), 5),
+        "views": views,
+    }
+
+
+def run_embed(args) -> int:
+    from ..api import load
+    from ..mesh import load as load_mesh, save
+
+    watermarker = load(args.model)
+    mesh = load_mesh(args.input, up_axis=args.up)
+    if args.output.resolve() in (mesh.source.input_files if mesh.source else {args.input.resolve()}):
+        raise MeshsealError(f"{args.output}: refusing to overwrite an input file; choose another output path")
+    marked = watermarker.embed(mesh, args.message)
+    written = save(marked, args.output)
+    report = embed_report(mesh, marked, args.views) | {"model": watermarker.name, "n_bits": watermarker.n_bits,
+                                                       "output": str(args.output)}
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(f"wrote {', '.join(str(p) for p in written)}")
+        psnr_texture = report["psnr_texture"]
+        print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB, normal change "
+              f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels, "
+              f"render PSNR {report['psnr_render']:.2f} dB, SSIM {report['ssim_render']:.4f} "
+              f"({args.views} views)")
+    return 0
+
+
+def run_detect(args) -> int:
+    from ..api import load
+
+    watermarker = load(args.model)
+    failed = 0
+    for path in args.images:
+        try:
+            result = watermarker.detect(path)
+        except MeshsealError as error:
+            print(f"meshseal: error: {error}", file=sys.stderr)
+            failed += 1
+            continue
+        if args.json:
+            print(json.dumps({"image": str(path)} | result.to_dict()))
+        else:
+            print(f"{path}: {result.bits} (confidence {result.confidence:.3f})")
+    return 2 if failed else 0
+
+
+def run_eval(args) -> int:
+    from ..api import load
+    from ..data.dataset import MeshDataset
+    from ..distortions import Distortions2D, Distortions3D
+    from ..evaluate import evaluate
+
+    watermarker = load(args.model)
+    if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
+        raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest); build one with 'meshseal data build'")
+    dataset = MeshDataset(args.data, args.split, seed=args.seed)
+    if len(dataset) == 0:
+        raise MeshsealError(f"{args.data}: the {args.split} split is empty")
+    metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, args.size, args.sampler,
+                       distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
+                       distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None)
+    metrics = {"model": watermarker.name, "split": args.split, "sampler": args.sampler} | metrics
+    if args.json:
+        print(json.dumps(metrics))
+    else:
+        for key, value in metrics.items():
+            print(f"{key}: {value:.4f}" if isinstance(value, float) else f"{key}: {value}")
+    return 0
+
+
+def run_train(args) -> int:
+    from ..train import TrainConfig, Trainer
+
+    config = TrainConfig.load(args.config)
+    if args.data is not None:
+        config.data = str(args.data)
+    if not Path(config.data).is_dir():
+        raise MeshsealError(f"{config.data}: no dataset folder; build one with 'meshseal data build --out {config.data}'")
+    out = args.out or Path("runs") / config.name
+    summary = Trainer(config, out, resume=args.resume).fit()
+    print(json.dumps(summary | {"out": str(out)}))
+    return 0
+
+
+def run_models(args) -> int:
+    from ..api import shipped_models
+
+    models = shipped_models()
+    if args.json:
+        print(json.dumps([{"name": m["name"], "n_bits": m["n_bits"], "strategy": m["strategy"]} for m in models]))
+    else:
+        for m in models:
+            print(f"{m['name']}: {m['n_bits']} bits, {m['strategy']}")
+    return 0

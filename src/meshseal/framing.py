@@ -1,0 +1,80 @@
+"""Put the object in a canonical frame before decoding, in training and in detection alike.
+
+The decoder always sees the object's bounding box (plus a margin) as a square `size` x `size` picture,
+so a screenshot where the object fills 20 % or 100 % of the frame, at any resolution, looks like the
+renders it was trained on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+def boxes_from_mask(mask: torch.Tensor, margin: float = 0.08) -> torch.Tensor:
+    """(B, H, W) mask -> square boxes (B, 4) as (centre_x, centre_y, half_side) in pixels.
+
+    An empty mask gives the whole image.
+    """
+    n, height, width = mask.shape
+    boxes = torch.empty(n, 3, dtype=torch.float32)
+    for index in range(n):
+        rows = torch.nonzero(mask[index].any(dim=1)).squeeze(1)
+        cols = torch.nonzero(mask[index].any(dim=0)).squeeze(1)
+        if len(rows) == 0:
+            boxes[index] = torch.tensor([width / 2, height / 2, max(height, width) / 2])
+            continue
+        top, bottom, left, right = float(rows[0]), float(rows[-1]) + 1, float(cols[0]), float(cols[-1]) + 1
+        half = max(bottom - top, right - left) / 2 * (1 + 2 * margin)
+        boxes[index] = torch.tensor([(left + right) / 2, (top + bottom) / 2, max(half, 4.0)])
+    return boxes
+
+
+def crop_boxes(image: torch.Tensor, boxes: torch.Tensor, size: int, background: torch.Tensor | None = None) -> torch.Tensor:
+    """Crop square boxes (B, 3) from images (B, C, H, W) and resample to (B, C, size, size), bilinear,
+    with antialiasing when shrinking. Outside the image is `background` (B, C) (default 0)."""
+    n, channels, height, width = image.shape
+    boxes = boxes.to(image.device, image.dtype)
+    if background is None:
+        background = image.new_zeros(n, channels)
+    shift = background.reshape(n, channels, 1, 1)
+    shrink = float((2 * boxes[:, 2]).max()) / size
+    source = image - shift
+    if shrink > 1.5:  # prefilter so bilinear resampling does not alias
+        factor = 1.0 / shrink
+        source = F.interpolate(source, scale_factor=factor, mode="bilinear", align_corners=False, antialias=True)
+    theta = image.new_zeros(n, 2, 3)
+    theta[:, 0, 0] = boxes[:, 2] / (width / 2)
+    theta[:, 1, 1] = boxes[:, 2] / (height / 2)
+    theta[:, 0, 2] = boxes[:, 0] / (width / 2) - 1
+    theta[:, 1, 2] = boxes[:, 1] / (height / 2) - 1
+    grid = F.affine_grid(theta, (n, channels, size, size), align_corners=False)
+    return F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=False) + shift
+
+
+def estimate_background(image: np.ndarray) -> np.ndarray:
+    """The median colour of the image border (H, W, 3) -> (3,)."""
+    border = np.concatenate([image[0], image[-1], image[:, 0], image[:, -1]])
+    return np.median(border, axis=0)
+
+
+def object_mask(image: np.ndarray, threshold: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Find the object in a picture with a plain background: (H, W, 3) float -> mask (H, W), background (3,).
+
+    Pixels that differ from the border's median colour by more than `threshold`, cleaned up by keeping
+    the largest connected components that together hold 99 % of the area.
+    """
+    from scipy import ndimage
+
+    background = estimate_background(image)
+    mask = np.abs(image - background).max(axis=-1) > threshold
+    mask = ndimage.binary_opening(mask, iterations=1)
+    labels, count = ndimage.label(mask)
+    if count > 1:
+        sizes = ndimage.sum(mask, labels, index=np.arange(1, count + 1))
+        order = np.argsort(sizes)[::-1]
+        cumulative = np.cumsum(sizes[order]) / sizes.sum()
+        keep = order[: int(np.searchsorted(cumulative, 0.99)) + 1] + 1
+        mask = np.isin(labels, keep)
+    return mask, background

@@ -1,0 +1,64 @@
+"""Image decoders: rendered image (any size) -> message logits (B, N)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .blocks import ConvBNReLU
+
+
+class HiddenDecoder(nn.Module):
+    """HiDDeN's decoder as in the seed: `blocks` conv-BN-ReLU blocks, the last two with stride 2, global
+    average pooling, a linear layer to N bits. `stem_stride` 2 halves the resolution first (CPU size);
+    `widths` lets later blocks grow."""
+
+    def __init__(self, n_bits: int, channels: int = 64, blocks: int = 7, stem_stride: int = 1,
+                 growth: int = 1):
+        super().__init__()
+        layers, in_channels = [], 3
+        for index in range(blocks):
+            stride = 2 if index >= blocks - 2 else (stem_stride if index == 0 else 1)
+            out_channels = channels * (growth ** max(0, index - (blocks - 3)))
+            layers.append(ConvBNReLU(in_channels, out_channels, stride=stride))
+            in_channels = out_channels
+        self.features = nn.Sequential(*layers)
+        self.head = nn.Linear(in_channels, n_bits)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(image).mean(dim=(2, 3)))
+
+
+class SimpleCNNDecoder(nn.Module):
+    """The seed's baseline: 4 plain conv layers (stride 2), global pooling, linear."""
+
+    def __init__(self, n_bits: int, channels: int = 64):
+        super().__init__()
+        self.features = nn.Sequential(*[ConvBNReLU(3 if i == 0 else channels, channels, stride=2) for i in range(4)])
+        self.head = nn.Linear(channels, n_bits)
+
+    def forward(self, image):
+        return self.head(self.features(image).mean(dim=(2, 3)))
+
+
+class _Residual(nn.Module):
+    def __init__(self, in_channels: int, channels: int):
+        super().__init__()
+        self.body = nn.Sequential(ConvBNReLU(in_channels, channels, stride=2),
+                                  nn.Conv2d(channels, channels, 3, padding=1, bias=False), nn.BatchNorm2d(channels))
+        self.skip = nn.Conv2d(in_channels, channels, 1, stride=2, bias=False)
+
+    def forward(self, x):
+        return torch.relu(self.body(x) + self.skip(x))
+
+
+class ResidualCNNDecoder(nn.Module):
+    """The seed's baseline: 4 residual layers (stride 2), global pooling, linear."""
+
+    def __init__(self, n_bits: int, channels: int = 64):
+        super().__init__()
+        self.features = nn.Sequential(*[_Residual(3 if i == 0 else channels, channels) for i in range(4)])
+        self.head = nn.Linear(channels, n_bits)
+
+    def forward(self, image):
+        return self.head(self.features(image).mean(dim=(2, 3)))

@@ -1,0 +1,100 @@
+"""The watermarking model: vertex encoder + texture encoder + decoder, built from a config."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import torch
+from torch import nn
+
+from .decoders import HiddenDecoder, ResidualCNNDecoder, SimpleCNNDecoder
+from .texture_encoders import HiddenTextureEncoder, UNetTextureEncoder
+from .vertex_encoders import PointNetVertexEncoder
+
+STRATEGIES = ("vertex", "texture", "vertex+texture")
+
+
+@dataclass
+class ModelConfig:
+    """Every architecture of the seed, selectable by name (see configs/*.yaml)."""
+
+    n_bits: int = 32
+    strategy: str = "texture"  # vertex | texture | vertex+texture
+    texture_encoder: str = "hidden"  # hidden | unet
+    texture_channels: int = 64
+    texture_blocks: int = 4
+    texture_downsample: int = 1
+    texture_strength: float = 0.1
+    texture_size: int = 128
+    vertex_encoder: str = "pointnet2"  # pointnet (max pooling) | pointnet2 (average pooling)
+    vertex_width: int = 64
+    normal_strength: float = 0.05
+    uv_strength: float = 0.002
+    decoder: str = "hidden"  # hidden | simple | residual
+    decoder_channels: int = 64
+    decoder_blocks: int = 7
+    decoder_stem_stride: int = 1
+    decoder_growth: int = 1
+    frame_size: int = 128
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "ModelConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown model setting(s): {', '.join(sorted(unknown))}")
+        config = cls(**values)
+        if config.strategy not in STRATEGIES:
+            raise ValueError(f"strategy must be one of {STRATEGIES}")
+        return config
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class WatermarkModel(nn.Module):
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        n = config.n_bits
+        self.texture_encoder = None
+        if "texture" in config.strategy:
+            if config.texture_encoder == "hidden":
+                self.texture_encoder = HiddenTextureEncoder(n, config.texture_channels, config.texture_blocks,
+                                                            config.texture_size, config.texture_strength,
+                                                            config.texture_downsample)
+            elif config.texture_encoder == "unet":
+                self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
+            else:
+                raise ValueError(f"unknown texture encoder '{config.texture_encoder}'")
+        self.vertex_encoder = None
+        if "vertex" in config.strategy:
+            if config.vertex_encoder not in ("pointnet", "pointnet2"):
+                raise ValueError(f"unknown vertex encoder '{config.vertex_encoder}'")
+            self.vertex_encoder = PointNetVertexEncoder(n, "max" if config.vertex_encoder == "pointnet" else "avg",
+                                                        config.vertex_width, config.normal_strength, config.uv_strength)
+        if config.decoder == "hidden":
+            self.decoder = HiddenDecoder(n, config.decoder_channels, config.decoder_blocks,
+                                         config.decoder_stem_stride, config.decoder_growth)
+        elif config.decoder == "simple":
+            self.decoder = SimpleCNNDecoder(n, config.decoder_channels)
+        elif config.decoder == "residual":
+            self.decoder = ResidualCNNDecoder(n, config.decoder_channels)
+        else:
+            raise ValueError(f"unknown decoder '{config.decoder}'")
+
+    @property
+    def n_bits(self) -> int:
+        return self.config.n_bits
+
+    def embed(self, positions, normals, uvs, texture, message, vertex_mask=None):
+        """Watermark a batch: returns (normals, uvs, texture), each unchanged where its encoder is off."""
+        if self.vertex_encoder is not None:
+            normals, uvs = self.vertex_encoder(positions, normals, uvs, message, vertex_mask)
+        if self.texture_encoder is not None:
+            texture = self.texture_encoder(texture, message)
+        return normals, uvs, texture
+
+    def decode(self, image: torch.Tensor) -> torch.Tensor:
+        """Framed pictures (B, 3, S, S) in [0, 1] -> message logits (B, N)."""
+        return self.decoder(image * 2.0 - 1.0)

@@ -1,0 +1,368 @@
+"""Training: `meshseal train --config configs/NAME.yaml [--out DIR] [--resume]`.
+
+Curriculum (each stage is a config knob; see docs/training.md):
+1. texture-space pretraining: the texture encoder and the decoder learn on random perspective views of
+   the watermarked texture itself (no renderer: fast), so the decoder starts from a working code;
+2. end to end through the differentiable renderer with random cameras, lights and backgrounds, the
+   3D and 2D distortions switched on after `distortion_start` steps;
+throughout, the invisibility losses ramp up over `warmup_steps`, and the rendered-image loss weight is
+adapted (dual ascent) to hold the rendered PSNR at `target_psnr`.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+import yaml
+
+from .distortions import Distortions2D, Distortions3D
+from .errors import MeshsealError
+from .losses import bit_accuracy, masked_l1, message_loss, psnr
+from .models import ModelConfig, WatermarkModel
+from .models.io import save_model, save_tensors
+from .pipeline import random_backgrounds, run_pass
+from .render import MeshRenderer
+
+
+@dataclass
+class LossWeights:
+    """The seed's lambda, gamma, delta, theta, eta (Eq. 6) and per-component vertex weights w^i."""
+
+    vertex: float = 2.0
+    normal_weight: float = 1.0
+    uv_weight: float = 1.0
+    texture: float = 1.0
+    image: float = 1.0
+    message: float = 1.0
+    reg: float = 0.01
+
+
+@dataclass
+class TrainSettings:
+    steps: int = 3000
+    pretrain_steps: int = 0
+    batch_size: int = 8
+    lr: float = 1e-4
+    render_size: int = 128
+    sampler: str = "seed"
+    background: str = "black"  # black | random
+    warmup_steps: int = 0
+    distortion_start: int = 0
+    distortion_3d: float = 1.0
+    distortion_2d: float = 0.0
+    target_psnr: float | None = None
+    val_every: int = 250
+    val_meshes: int = 32
+    checkpoint_every: int = 250
+    time_limit_minutes: float | None = None
+    retexture: float = 0.0
+
+
+@dataclass
+class TrainConfig:
+    name: str = "default"
+    seed: int = 0
+    data: str = "data"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossWeights = field(default_factory=LossWeights)
+    train: TrainSettings = field(default_factory=TrainSettings)
+
+    @classmethod
+    def load(cls, path) -> "TrainConfig":
+        path = Path(path)
+        if not path.is_file():
+            raise MeshsealError(f"{path}: no such config file")
+        try:
+            values = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as error:
+            raise MeshsealError(f"{path}: invalid YAML: {str(error).splitlines()[0]}") from None
+        return cls.from_dict(values, str(path))
+
+    @classmethod
+    def from_dict(cls, values: dict, origin: str = "config") -> "TrainConfig":
+        def build(kind, part):
+            known = {f.name for f in fields(kind)}
+            unknown = set(part or {}) - known
+            if unknown:
+                raise MeshsealError(f"{origin}: unknown setting(s) {', '.join(sorted(unknown))}")
+            return kind(**(part or {}))
+
+        top = dict(values)
+        try:
+            model = ModelConfig.from_dict(top.pop("model", {}) or {})
+        except (TypeError, ValueError) as error:
+            raise MeshsealError(f"{origin}: model: {error}") from None
+        loss = build(LossWeights, top.pop("loss", None))
+        train = build(TrainSettings, top.pop("train", None))
+        config = build(cls, top)
+        config.model, config.loss, config.train = model, loss, train
+        return config
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "seed": self.seed, "data": self.data, "model": self.model.to_dict(),
+                "loss": asdict(self.loss), "train": asdict(self.train)}
+
+
+# ---------------------------------------------------------------- texture-space views (stage 1)
+
+
+def texture_views(texture: torch.Tensor, size: int, generator: torch.Generator) -> torch.Tensor:
+    """Random perspective-like views of a (repeating) texture, shaded and on a plain background:
+    what a render of a textured surface looks like, without rendering."""
+    n = texture.shape[0]
+    rand = lambda *shape: torch.rand(*shape, generator=generator)  # noqa: E731
+    zoom = 0.35 + 0.65 * rand(n)  # fraction of the texture across the view
+    angle = 2 * math.pi * rand(n)
+    squash = 0.45 + 0.55 * rand(n)  # foreshortening
+    c, s = torch.cos(angle), torch.sin(angle)
+    matrix = torch.stack([torch.stack([c * zoom, -s * zoom * squash], -1),
+                          torch.stack([s * zoom, c * zoom * squash], -1)], 1)  # (n, 2, 2)
+    axis = torch.linspace(-1, 1, size)
+    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+    points = torch.stack([xs, ys], -1).reshape(1, -1, 2)
+    bend = 0.15 * (rand(n, 1, 2) - 0.5) * (points ** 2).sum(-1, keepdim=True)  # mild curvature
+    grid = points @ matrix.transpose(1, 2) + (2 * rand(n, 1, 2) - 1) + bend
+    grid = torch.remainder(grid + 1, 2) - 1  # REPEAT wrap
+    view = F.grid_sample(texture, grid.reshape(n, size, size, 2).to(texture), mode="bilinear",
+                         padding_mode="border", align_corners=False)
+    gradient = (rand(n, 2) - 0.5).to(texture)
+    shading = 0.35 + 0.8 * rand(n, 1, 1).to(texture) + (gradient[:, :1, None] * xs + gradient[:, 1:, None] * ys).to(texture)
+    view = (view * shading.unsqueeze(1).clamp(0.1, 1.6)).clamp(0, 1)
+    # A silhouette: an ellipse of random size and place, plain background outside.
+    centre = 0.4 * (rand(n, 2) - 0.5)
+    radii = 0.55 + 0.45 * rand(n, 2)
+    inside = (((xs - centre[:, :1, None]) / radii[:, :1, None]) ** 2 +
+              ((ys - centre[:, 1:, None]) / radii[:, 1:, None]) ** 2) <= 1
+    background = random_backgrounds(n, generator).to(texture)[:, :, None, None]
+    return torch.where(inside.unsqueeze(1).to(texture.device), view, background)
+
+
+# ---------------------------------------------------------------- the loop
+
+
+def _optimizer_tensors(optimizer: torch.optim.Optimizer, parameters: list) -> dict[str, torch.Tensor]:
+    tensors = {}
+    for index, parameter in enumerate(parameters):
+        for key, value in optimizer.state.get(parameter, {}).items():
+            tensors[f"{index}.{key}"] = value if torch.is_tensor(value) else torch.tensor(value)
+    return tensors
+
+
+def _load_optimizer_tensors(optimizer, parameters, tensors) -> None:
+    for name, value in tensors.items():
+        index, key = name.split(".", 1)
+        optimizer.state[parameters[int(index)]][key] = value
+
+
+class Trainer:
+    def __init__(self, config: TrainConfig, out_dir, resume: bool = False, device: str = "cpu", log=print):
+        from .data.dataset import MeshDataset
+
+        self.config, self.out, self.device, self.log = config, Path(out_dir), torch.device(device), log
+        self.out.mkdir(parents=True, exist_ok=True)
+        torch.manual_seed(config.seed)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.train_set = MeshDataset(config.data, "train", retexture=config.train.retexture, seed=config.seed)
+        self.val_set = MeshDataset(config.data, "test", seed=config.seed)
+        if len(self.train_set) == 0:
+            raise MeshsealError(f"{config.data}: the train split is empty")
+        self.model = WatermarkModel(config.model).to(self.device)
+        self.parameters = list(self.model.parameters())
+        # eta * sum(w^2) in the loss is exactly Adam's coupled weight decay 2 * eta.
+        self.optimizer = torch.optim.Adam(self.parameters, lr=config.train.lr, weight_decay=2 * config.loss.reg)
+        self.renderer = MeshRenderer()
+        self.step = 0
+        self.image_weight = config.loss.image
+        self.elapsed = 0.0
+        if resume and (self.out / "checkpoint.safetensors").is_file():
+            self._restore()
+
+    # -------------------------------------------------------- checkpoints
+    def _checkpoint(self) -> None:
+        tensors = {f"model.{k}": v for k, v in self.model.state_dict().items()}
+        tensors |= {f"optim.{k}": v for k, v in _optimizer_tensors(self.optimizer, self.parameters).items()}
+        tensors["rng.generator"] = self.generator.get_state()
+        tensors["rng.torch"] = torch.get_rng_state()
+        state = {"step": self.step, "image_weight": self.image_weight, "elapsed": self.elapsed}
+        save_tensors(tensors, self.out / "checkpoint.safetensors", {"state": json.dumps(state),
+                                                                     "config": json.dumps(self.config.to_dict())})
+
+    def _restore(self) -> None:
+        from safetensors import safe_open
+        from safetensors.torch import load_file
+
+        path = self.out / "checkpoint.safetensors"
+        tensors = load_file(str(path))
+        with safe_open(str(path), framework="pt") as handle:
+            state = json.loads(handle.metadata()["state"])
+        self.model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+        _load_optimizer_tensors(self.optimizer, self.parameters,
+                                {k[6:]: v for k, v in tensors.items() if k.startswith("optim.")})
+        self.generator.set_state(tensors["rng.generator"])
+        torch.set_rng_state(tensors["rng.torch"])
+        self.step, self.image_weight, self.elapsed = state["step"], state["image_weight"], state["elapsed"]
+        self.log(f"resumed from step {self.step}")
+
+    # -------------------------------------------------------- data
+    def _batches(self):
+        epoch = 0
+        while True:
+            self.train_set.set_epoch(epoch)
+            epoch += 1
+            order = torch.randperm(len(self.train_set), generator=self.generator).tolist()
+            size = self.config.train.batch_size
+            for start in range(0, len(order) - size + 1, size):
+                items = [self.train_set[i] for i in order[start:start + size]]
+                yield {key: torch.stack([item[key] for item in items]).to(self.device)
+                       for key in items[0] if torch.is_tensor(items[0][key])}
+
+    # -------------------------------------------------------- one step
+    def _ramp(self) -> float:
+        warmup = self.config.train.warmup_steps
+        return 1.0 if warmup <= 0 else min(1.0, self.step / warmup)
+
+    def train_step(self, batch) -> dict[str, float]:
+        cfg, weights = self.config.train, self.config.loss
+        self.model.train()
+        n = batch["positions"].shape[0]
+        message = torch.randint(0, 2, (n, self.model.n_bits), generator=self.generator).float().to(self.device)
+        distorting = self.step >= cfg.distortion_start
+        ramp = self._ramp()
+        stats: dict[str, float] = {}
+        if self.step < cfg.pretrain_steps and self.model.texture_encoder is not None:
+            marked = self.model.texture_encoder(batch["texture"], message)
+            views = texture_views(marked, self.model.config.frame_size, self.generator)
+            if distorting and cfg.distortion_2d > 0:
+                views = Distortions2D(cfg.distortion_2d)(views, self.generator)
+            logits = self.model.decode(views)
+            texture_term = (marked - batch["texture"]).abs().mean()
+            loss = weights.message * message_loss(logits, message) + ramp * weights.texture * texture_term
+            stats["psnr_texture"] = float(psnr(marked.detach(), batch["texture"]).mean())
+            stats["stage"] = 1
+        else:
+            background = (random_backgrounds(n, self.generator) if cfg.background == "random" else torch.zeros(n, 3))
+            out = run_pass(self.model, batch, message, self.renderer, self.generator, cfg.render_size, cfg.sampler,
+                           Distortions3D(cfg.distortion_3d) if distorting and cfg.distortion_3d > 0 else None,
+                           Distortions2D(cfg.distortion_2d) if distorting and cfg.distortion_2d > 0 else None,
+                           background)
+            logits = out.logits
+            mask = (torch.arange(batch["positions"].shape[1], device=self.device)[None] < batch["n_verts"][:, None]).float()
+            vertex_term = (weights.normal_weight * masked_l1(out.normals_marked, out.normals, mask)
+                           + weights.uv_weight * masked_l1(out.uvs_marked, out.uvs, mask))
+            texture_term = (out.texture_marked - out.texture).abs().mean()
+            image_term = (out.render_marked - out.render).abs().mean()
+            loss = (weights.message * message_loss(logits, message)
+                    + ramp * (weights.vertex * vertex_term + weights.texture * texture_term
+                              + self.image_weight * image_term))
+            batch_psnr = float(psnr(out.render_marked.detach(), out.render).mean())
+            if cfg.target_psnr is not None and self.step >= cfg.warmup_steps:
+                # Dual ascent on the constraint PSNR >= target: raise the weight when below, lower above.
+                self.image_weight = float(min(max(self.image_weight * math.exp(0.05 * (cfg.target_psnr - batch_psnr)),
+                                                  0.1), 1e4))
+            stats.update(psnr_render=batch_psnr, image_weight=self.image_weight, stage=2,
+                         psnr_texture=float(psnr(out.texture_marked.detach(), out.texture).mean()))
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        stats.update(loss=float(loss), bit_acc=float(bit_accuracy(logits.detach(), message).mean()))
+        return stats
+
+    # -------------------------------------------------------- loop
+    def fit(self) -> dict:
+        from tqdm import tqdm
+
+        from .evaluate import evaluate
+
+        cfg = self.config.train
+        log_path = self.out / "log.csv"
+        columns = ["step", "stage", "loss", "bit_acc", "psnr_render", "psnr_texture", "image_weight", "elapsed_s"]
+        if not log_path.exists() or self.step == 0:
+            with open(log_path, "w", newline="") as stream:
+                csv.writer(stream).writerow(columns)
+        val_path = self.out / "val.csv"
+        if not val_path.exists() or self.step == 0:
+            val_path.write_text("step,bit_acc,psnr_render,ssim_render,psnr_texture,elapsed_s\n")
+        batches = self._batches()
+        start = time.time() - self.elapsed
+        recent: list[float] = []
+        bar = tqdm(total=cfg.steps, initial=self.step, desc=self.config.name, unit="step", dynamic_ncols=True)
+        stopped_early = False
+        while self.step < cfg.steps:
+            stats = self.train_step(next(batches))
+            self.step += 1
+            self.elapsed = time.time() - start
+            recent = (recent + [stats["bit_acc"]])[-50:]
+            bar.update(1)
+            bar.set_postfix(acc=f"{sum(recent) / len(recent):.3f}", psnr=f"{stats.get('psnr_render', float('nan')):.1f}",
+                            stage=stats["stage"])
+            with open(log_path, "a", newline="") as stream:
+                csv.writer(stream).writerow([self.step, stats["stage"], f"{stats['loss']:.5f}", f"{stats['bit_acc']:.4f}",
+                                             f"{stats.get('psnr_render', float('nan')):.3f}",
+                                             f"{stats.get('psnr_texture', float('nan')):.3f}",
+                                             f"{stats.get('image_weight', self.image_weight):.4f}", f"{self.elapsed:.1f}"])
+            last = self.step >= cfg.steps
+            if cfg.time_limit_minutes is not None and self.elapsed > 60 * cfg.time_limit_minutes:
+                stopped_early = last = True
+            if self.step % cfg.val_every == 0 or last:
+                metrics = evaluate(self.model, self.val_set, n_meshes=cfg.val_meshes, views=1, seed=self.config.seed,
+                                   render_size=cfg.render_size, sampler=cfg.sampler, batch_size=cfg.batch_size)
+                with open(val_path, "a") as stream:
+                    stream.write(f"{self.step},{metrics['bit_acc']:.4f},{metrics['psnr_render']:.3f},"
+                                 f"{metrics['ssim_render']:.4f},{metrics['psnr_texture']:.3f},{self.elapsed:.1f}\n")
+                bar.write(f"step {self.step}: val bit_acc {metrics['bit_acc']:.4f} psnr_render {metrics['psnr_render']:.2f} "
+                          f"ssim_render {metrics['ssim_render']:.4f} psnr_texture {metrics['psnr_texture']:.2f} "
+                          f"({self.step / max(self.elapsed, 1e-9) * 60:.0f} steps/min)")
+                plot_curves(self.out)
+            if self.step % cfg.checkpoint_every == 0 or last:
+                self._checkpoint()
+            if last:
+                break
+        bar.close()
+        save_model(self.model, self.out / "model.safetensors",
+                   {"name": self.config.name, "steps": self.step, "seed": self.config.seed,
+                    "training_seconds": round(self.elapsed, 1), "train_config": self.config.to_dict()})
+        summary = {"steps": self.step, "elapsed_s": round(self.elapsed, 1), "stopped_by_time_limit": stopped_early}
+        (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+
+def plot_curves(out_dir) -> None:
+    """log.csv and val.csv -> curves.png (training bit accuracy and PSNR, validation points)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    out_dir = Path(out_dir)
+    rows = list(csv.DictReader(open(out_dir / "log.csv")))
+    val = list(csv.DictReader(open(out_dir / "val.csv"))) if (out_dir / "val.csv").exists() else []
+    if not rows:
+        return
+    step = np.array([float(r["step"]) for r in rows])
+    acc = np.array([float(r["bit_acc"]) for r in rows])
+    window = max(1, len(acc) // 100)
+    smooth = np.convolve(acc, np.ones(window) / window, mode="same")
+    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+    left.plot(step, smooth, label="train (smoothed)")
+    if val:
+        left.plot([float(v["step"]) for v in val], [float(v["bit_acc"]) for v in val], "o-", label="validation")
+    left.set_xlabel("step"), left.set_ylabel("bit accuracy"), left.legend(), left.grid(alpha=0.3)
+    p = np.array([float(r["psnr_render"]) for r in rows])
+    right.plot(step, p, ".", ms=2, alpha=0.4, label="train render PSNR")
+    if val:
+        right.plot([float(v["step"]) for v in val], [float(v["psnr_render"]) for v in val], "o-", label="val render PSNR")
+        right.plot([float(v["step"]) for v in val], [float(v["psnr_texture"]) for v in val], "s-", label="val texture PSNR")
+    right.set_xlabel("step"), right.set_ylabel("dB"), right.legend(), right.grid(alpha=0.3)
+    figure.tight_layout()
+    temp = out_dir / ".curves.png.tmp.png"
+    figure.savefig(temp, dpi=90)
+    plt.close(figure)
+    temp.replace(out_dir / "curves.png")

@@ -1,0 +1,387 @@
+"""Mesh loading, saving and preprocessing on the real fixtures and on broken files."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from meshseal.errors import MeshError
+from meshseal.mesh import (Material, Mesh, load, normalize, save, simplify, spherical_uv, to_z_up,
+                           vertex_normals)
+from meshseal.mesh import io as mesh_io
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+# path: (vertices, faces, up axis, [(material name, texture size or None)], has uvs)
+EXPECTED = {
+    "bunny.glb": (2044, 3998, "y", [("bunny_grass", (256, 256))], True),
+    "suzanne.glb": (2106, 3998, "y", [("suzanne_gravel", (256, 256))], True),
+    "multi_material.glb": (639, 1152, "y", [("fabric", (256, 256)), ("frame", (200, 200)), ("metal", None)], True),
+    "bunny.ply": (1001, 1998, "z", [("bunny.ply", None)], False),
+    "cube.off": (8, 12, "z", [("cube.off", None)], False),
+    "tetra.stl": (12, 4, "z", [("tetra.stl", None)], False),
+    "teapot/teapot.obj": (1405, 2256, "y", [("teapot", (256, 256))], True),
+    "sh3d_crate/crate.obj": (1728, 864, "y", [("Crate", (256, 256))], True),
+    "sh3d_deckChair/deckChair.obj": (849, 1152, "y", [("ChairFrame", (200, 200)), ("Chair_Fabric", (256, 256)),
+                                                      ("Metal", None)], True),
+}
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+def _no_temp_files(folder: Path) -> bool:
+    return not [p for p in folder.rglob("*") if p.name.endswith(".tmp")]
+
+
+# ---------------------------------------------------------------- loading
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_load_fixture(name):
+    n_vertices, n_faces, up_axis, materials, has_uvs = EXPECTED[name]
+    mesh = load(FIXTURES / name)
+    assert (mesh.n_vertices, mesh.n_faces, mesh.up_axis) == (n_vertices, n_faces, up_axis)
+    assert [m.name for m in mesh.materials] == [m[0] for m in materials]
+    for material, (_, size) in zip(mesh.materials, materials):
+        if size is None:
+            assert material.texture is None
+        else:
+            assert tuple(material.texture.shape) == (*size, 3)
+            assert material.texture.dtype == torch.float32
+            assert 0.0 <= float(material.texture.min()) and float(material.texture.max()) <= 1.0
+    assert (mesh.uvs is not None) == has_uvs
+    if has_uvs:
+        assert mesh.uvs.shape == (n_vertices, 2) and torch.isfinite(mesh.uvs).all()
+    assert mesh.positions.shape == mesh.normals.shape == (n_vertices, 3)
+    assert mesh.faces.dtype == torch.int64 and int(mesh.faces.max()) < n_vertices
+    assert torch.isfinite(mesh.positions).all()
+    assert torch.allclose(mesh.normals.norm(dim=-1), torch.ones(n_vertices), atol=1e-4)
+    # Every material is used by some face, and face_material indexes the table.
+    assert sorted(torch.unique(mesh.face_material).tolist()) == list(range(len(materials)))
+
+
+def test_multi_material_parts_and_nodes():
+    mesh = load(FIXTURES / "multi_material.glb")
+    parts = mesh.source.parts
+    assert [p.node for p in parts] == ["fabric", "frame", "metal"]
+    # The root node scales by 0.01: positions are in world units (the OBJ's scale * 0.01).
+    obj = load(FIXTURES / "sh3d_deckChair" / "deckChair.obj")
+    extent = lambda m: (m.positions.max(0).values - m.positions.min(0).values)  # noqa: E731
+    assert torch.allclose(extent(mesh) * 100.0, extent(obj), rtol=1e-3)
+
+
+def test_double_sided_sheet_has_unit_normals():
+    # The deck chair's fabric in the GLB is a double-sided sheet sharing vertices: the face normals
+    # cancel, yet every vertex needs a proper normal for shading.
+    mesh = load(FIXTURES / "multi_material.glb")
+    fabric = mesh.face_material == [m.name for m in mesh.materials].index("fabric")
+    vertices = mesh.faces[fabric].unique()
+    normals = mesh.normals[vertices]
+    assert torch.allclose(normals.norm(dim=-1), torch.ones(len(vertices)), atol=1e-4)
+
+
+def test_up_axis_override():
+    assert load(FIXTURES / "bunny.glb", up_axis="z").up_axis == "z"
+    assert load(FIXTURES / "cube.off", up_axis="y").up_axis == "y"
+
+
+def test_missing_texture_is_a_warning(tmp_path, capsys):
+    folder = tmp_path / "teapot"
+    shutil.copytree(FIXTURES / "teapot", folder)
+    (folder / "teapot.jpg").unlink()
+    mesh = load(folder / "teapot.obj")
+    assert mesh.n_faces == 2256 and mesh.materials[0].texture is None
+    assert mesh.uvs is not None
+    err = capsys.readouterr().err
+    assert "warning" in err and "teapot.jpg" in err and len(err.strip().splitlines()) == 1
+
+
+def test_missing_mtl_is_a_warning(tmp_path, capsys):
+    folder = tmp_path / "crate"
+    shutil.copytree(FIXTURES / "sh3d_crate", folder)
+    (folder / "crate.mtl").unlink()
+    mesh = load(folder / "crate.obj")
+    assert mesh.n_faces == 864 and all(m.texture is None for m in mesh.materials)
+    assert "crate.mtl" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def _write(path: Path, data: bytes | str) -> Path:
+    path.write_bytes(data.encode() if isinstance(data, str) else data)
+    return path
+
+
+TRIANGLE = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
+
+BAD_INPUTS = {
+    "truncated_glb": lambda d: _write(d / "bunny.glb", (FIXTURES / "bunny.glb").read_bytes()[:100_000]),
+    "glb_header_only": lambda d: _write(d / "head.glb", (FIXTURES / "bunny.glb").read_bytes()[:12]),
+    "binary_garbage_obj": lambda d: _write(d / "garbage.obj", np.random.default_rng(0).bytes(4096)),
+    "text_garbage_obj": lambda d: _write(d / "text.obj", "hello world\nthis is not\nf a b c\n"),
+    "empty_obj": lambda d: _write(d / "empty.obj", b""),
+    "empty_glb": lambda d: _write(d / "empty.glb", b""),
+    "nan_vertices": lambda d: _write(d / "nan.obj", "v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n"),
+    "inf_vertices_off": lambda d: _write(d / "inf.off", "OFF\n3 1 0\n0 0 0\n1 0 0\ninf 1 0\n3 0 1 2\n"),
+    "face_index_out_of_range": lambda d: _write(d / "range.obj", TRIANGLE + "f 1 2 9\n"),
+    "off_index_out_of_range": lambda d: _write(d / "range.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n"),
+    "no_faces": lambda d: _write(d / "points.obj", TRIANGLE),
+    "png_renamed_obj": lambda d: _write(d / "image.obj", (FIXTURES / "textures" / "brick.png").read_bytes()),
+    "png_renamed_glb": lambda d: _write(d / "image.glb", (FIXTURES / "textures" / "brick.png").read_bytes()),
+    "png_renamed_stl": lambda d: _write(d / "image.stl", (FIXTURES / "textures" / "brick.png").read_bytes()),
+    "unsupported_extension": lambda d: _write(d / "mesh.fbx", TRIANGLE + "f 1 2 3\n"),
+    "no_extension": lambda d: _write(d / "mesh", TRIANGLE + "f 1 2 3\n"),
+    "missing_file": lambda d: d / "nothing_here.obj",
+    "directory": lambda d: (d / "folder.obj").mkdir() or d / "folder.obj",
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_is_one_line_mesh_error(case, tmp_path):
+    path = BAD_INPUTS[case](tmp_path)
+    with pytest.raises(MeshError) as info:
+        load(path)
+    message = str(info.value)
+    assert message and "\n" not in message
+    assert str(path.name) in message
+
+
+# ---------------------------------------------------------------- saving
+
+
+def test_obj_round_trip(tmp_path):
+    mesh = load(FIXTURES / "teapot" / "teapot.obj")
+    mesh.materials[0].texture = 1.0 - mesh.materials[0].texture  # a visible change
+    written = save(mesh, tmp_path / "out.obj")
+    assert {p.name for p in written} >= {"out.obj", "out.mtl"}
+    assert _no_temp_files(tmp_path)
+    again = load(tmp_path / "out.obj")
+    assert [m.name for m in again.materials] == ["teapot"]
+    assert torch.allclose(again.materials[0].texture, mesh.materials[0].texture, atol=1.0 / 255 + 1e-6)
+    assert again.n_faces == mesh.n_faces and again.n_vertices == mesh.n_vertices
+    assert torch.allclose(again.positions, mesh.positions, atol=1e-5)
+    assert torch.allclose(again.uvs, mesh.uvs, atol=1e-5)
+    assert (again.normals * mesh.normals).sum(-1).min() > 0.999
+
+
+def test_obj_round_trip_keeps_changed_geometry(tmp_path):
+    mesh = load(FIXTURES / "sh3d_crate" / "crate.obj")
+    mesh.positions = mesh.positions * 2.0
+    mesh.uvs = mesh.uvs * 0.5
+    save(mesh, tmp_path / "crate2.obj")
+    again = load(tmp_path / "crate2.obj")
+    assert torch.allclose(again.positions, mesh.positions, atol=1e-4)
+    assert torch.allclose(again.uvs, mesh.uvs, atol=1e-5)
+
+
+def test_glb_round_trip(tmp_path):
+    mesh = load(FIXTURES / "bunny.glb")
+    texture = mesh.materials[0].texture.clone()
+    texture[:64, :64] = torch.tensor([1.0, 0.0, 0.0])  # a red patch in the top-left
+    mesh.materials[0].texture = texture
+    save(mesh, tmp_path / "bunny_marked.glb")
+    assert _no_temp_files(tmp_path)
+    again = load(tmp_path / "bunny_marked.glb")
+    assert [m.name for m in again.materials] == ["bunny_grass"]
+    assert [p.node for p in again.source.parts] == ["bunny"]
+    assert torch.allclose(again.materials[0].texture, texture, atol=1.0 / 255 + 1e-6)
+    assert again.n_faces == mesh.n_faces and again.n_vertices == mesh.n_vertices
+    assert torch.allclose(again.positions, mesh.positions, atol=1e-5)
+    assert torch.allclose(again.uvs, mesh.uvs, atol=1e-5)
+    assert (again.normals * mesh.normals).sum(-1).min() > 0.999
+
+
+def test_glb_multi_material_save_keeps_textures_names_and_nodes(tmp_path):
+    mesh = load(FIXTURES / "multi_material.glb")
+    changed = {}
+    for material in mesh.materials:
+        if material.texture is not None:
+            material.texture = material.texture.flip(-1)  # swap R and B
+            changed[material.name] = material.texture
+    assert len(changed) >= 2
+    save(mesh, tmp_path / "chair.glb")
+    again = load(tmp_path / "chair.glb")
+    assert [m.name for m in again.materials] == [m.name for m in mesh.materials]
+    assert [p.node for p in again.source.parts] == [p.node for p in mesh.source.parts]
+    assert "deck_chair" in again.source.scene.graph.nodes  # the root node survives
+    for material in again.materials:
+        if material.name in changed:
+            assert torch.allclose(material.texture, changed[material.name], atol=1.0 / 255 + 1e-6)
+    assert torch.allclose(again.positions, mesh.positions, atol=1e-5)
+    assert torch.equal(again.face_material, mesh.face_material)
+
+
+def test_obj_multi_material_save_keeps_textures(tmp_path):
+    mesh = load(FIXTURES / "sh3d_deckChair" / "deckChair.obj")
+    save(mesh, tmp_path / "chair.obj")
+    images = [p for p in tmp_path.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg")]
+    assert len(images) >= 2
+    again = load(tmp_path / "chair.obj")
+    assert [m.name for m in again.materials] == ["ChairFrame", "Chair_Fabric", "Metal"]
+    assert sum(m.texture is not None for m in again.materials) == 2
+    for before, after in zip(mesh.materials, again.materials):
+        if before.texture is not None:
+            assert torch.allclose(before.texture, after.texture, atol=1.0 / 255 + 1e-6)
+
+
+def test_save_in_memory_mesh(tmp_path):
+    positions = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    faces = torch.tensor([[0, 1, 2]])
+    mesh = Mesh(positions, vertex_normals(positions, faces), faces,
+                uvs=torch.tensor([[0.0, 0], [1, 0], [0, 1]]),
+                materials=[Material(name="m", texture=torch.rand(8, 8, 3))])
+    save(mesh, tmp_path / "tri.obj")
+    again = load(tmp_path / "tri.obj")
+    assert again.n_faces == 1 and again.materials[0].texture is not None
+    save(mesh, tmp_path / "tri.glb")
+    assert load(tmp_path / "tri.glb").n_faces == 1
+
+
+def test_save_format_must_match(tmp_path):
+    mesh = load(FIXTURES / "bunny.glb")
+    with pytest.raises(MeshError, match="format"):
+        save(mesh, tmp_path / "bunny.obj")
+    with pytest.raises(MeshError, match="unsupported"):
+        save(mesh, tmp_path / "bunny.fbx")
+
+
+def test_save_never_overwrites_the_input(tmp_path):
+    folder = tmp_path / "teapot"
+    shutil.copytree(FIXTURES / "teapot", folder)
+    before = _files(folder)
+    mesh = load(folder / "teapot.obj")
+    with pytest.raises(MeshError, match="overwrite"):
+        save(mesh, folder / "teapot.obj")
+    glb = tmp_path / "bunny.glb"
+    shutil.copy(FIXTURES / "bunny.glb", glb)
+    with pytest.raises(MeshError, match="overwrite"):
+        save(load(glb), glb)
+    assert _files(folder) == before and glb.read_bytes() == (FIXTURES / "bunny.glb").read_bytes()
+    assert _no_temp_files(tmp_path)
+
+
+def test_save_never_overwrites_an_input_texture(tmp_path):
+    # The OBJ's texture has exactly the name the exporter would give the output's texture.
+    folder = tmp_path / "teapot"
+    shutil.copytree(FIXTURES / "teapot", folder)
+    mesh = load(folder / "teapot.obj")
+    probe = save(mesh, tmp_path / "probe" / "out.obj")
+    texture_name = next(p.name for p in probe if p.suffix.lower() in (".png", ".jpg"))
+    (folder / "teapot.jpg").rename(folder / texture_name)
+    mtl = folder / "teapot.mtl"
+    mtl.write_text(mtl.read_text().replace("teapot.jpg", texture_name))
+    before = _files(folder)
+    mesh = load(folder / "teapot.obj")
+    assert mesh.materials[0].texture is not None
+    with pytest.raises(MeshError, match="overwrite"):
+        save(mesh, folder / "out.obj")
+    assert _files(folder) == before  # nothing written, not even the .obj
+    assert _no_temp_files(folder)
+
+
+def test_save_is_atomic(tmp_path, monkeypatch):
+    target = tmp_path / "bunny_out.glb"
+    target.write_bytes(b"previous content")
+    mesh = load(FIXTURES / "bunny.glb")
+
+    def failing_replace(src, dst):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(mesh_io.os, "replace", failing_replace)
+    with pytest.raises(OSError):
+        save(mesh, target)
+    assert target.read_bytes() == b"previous content"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny_out.glb"]
+
+
+# ---------------------------------------------------------------- preprocessing
+
+
+def test_normalize_bounds_and_aspect():
+    mesh = load(FIXTURES / "sh3d_crate" / "crate.obj")
+    extent = mesh.positions.max(0).values - mesh.positions.min(0).values
+    out = normalize(mesh)
+    low, high = out.positions.min(0).values, out.positions.max(0).values
+    assert float(low.min()) >= -1.0 - 1e-5 and float(high.max()) <= 1.0 + 1e-5
+    assert torch.allclose((high - low).max(), torch.tensor(2.0), atol=1e-5)
+    assert torch.allclose(low + high, torch.zeros(3), atol=1e-5)  # centred
+    new_extent = high - low
+    assert torch.allclose(new_extent / new_extent.max(), extent / extent.max(), atol=1e-5)
+    assert torch.equal(out.faces, mesh.faces) and out.materials is mesh.materials
+
+
+def test_to_z_up():
+    mesh = load(FIXTURES / "teapot" / "teapot.obj")  # Y-up: the lid is at max y
+    lid = int(mesh.positions[:, 1].argmax())
+    out = to_z_up(mesh)
+    assert out.up_axis == "z"
+    x, y, z = mesh.positions.unbind(-1)
+    assert torch.allclose(out.positions, torch.stack([x, -z, y], dim=-1))
+    assert int(out.positions[:, 2].argmax()) == lid
+    nx, ny, nz = mesh.normals.unbind(-1)
+    assert torch.allclose(out.normals, torch.stack([nx, -nz, ny], dim=-1))
+    z_up = load(FIXTURES / "cube.off")
+    assert to_z_up(z_up) is z_up
+    # A proper rotation: handedness (and so the winding of faces seen from outside) is kept.
+    rotation = torch.stack([to_z_up(replace_positions(mesh, torch.eye(3)[k])).positions[0] for k in range(3)])
+    assert torch.allclose(torch.linalg.det(rotation), torch.tensor(1.0))
+
+
+def replace_positions(mesh: Mesh, point: torch.Tensor) -> Mesh:
+    copy = mesh.copy()
+    copy.positions = point.reshape(1, 3).expand(mesh.n_vertices, 3).clone()
+    return copy
+
+
+def test_simplify_keeps_uvs_and_materials():
+    mesh = load(FIXTURES / "sh3d_deckChair" / "deckChair.obj")
+    out = simplify(mesh, 600)
+    assert 400 <= out.n_faces <= 700
+    assert out.uvs is not None and out.uvs.shape == (out.n_vertices, 2)
+    assert out.normals.shape == (out.n_vertices, 3)
+    assert out.face_material.shape == (out.n_faces,)
+    assert set(out.face_material.tolist()) == {0, 1, 2}
+    assert len(out.materials) == 3 and sum(m.texture is not None for m in out.materials) == 2
+    assert int(out.faces.max()) < out.n_vertices
+    # uvs come from original vertices: every new uv is one of the old ones
+    old = {tuple(np.round(uv, 5)) for uv in mesh.uvs.numpy()}
+    assert all(tuple(np.round(uv, 5)) in old for uv in out.uvs.numpy())
+
+
+def test_simplify_bunny_to_target():
+    mesh = load(FIXTURES / "bunny.glb")
+    out = simplify(mesh, 1000)
+    assert 800 <= out.n_faces <= 1100 and out.uvs is not None
+    assert simplify(out, 5000) is out  # already below the target
+
+
+def test_spherical_uv_range():
+    points = torch.randn(2000, 3, generator=torch.Generator().manual_seed(0))
+    uv = spherical_uv(points)
+    assert uv.shape == (2000, 2)
+    assert float(uv.min()) >= 0.0 and float(uv.max()) <= 1.0
+    top = spherical_uv(torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]))
+    assert torch.allclose(top[:, 1], torch.tensor([1.0, 0.0]))  # v = 1 at the north pole (+Z)
+
+
+def test_vertex_normals_unit_length():
+    mesh = load(FIXTURES / "suzanne.glb")
+    normals = vertex_normals(mesh.positions, mesh.faces)
+    assert torch.allclose(normals.norm(dim=-1), torch.ones(mesh.n_vertices), atol=1e-5)
+    # A flat square in the z = 0 plane, wound counter-clockwise seen from +z: normals are +z.
+    positions = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    assert torch.allclose(vertex_normals(positions, faces), torch.tensor([0.0, 0, 1]).expand(4, 3))
+    # The same square double-sided (each face twinned with the opposite winding): still unit, still +-z.
+    twin = torch.cat([faces, faces.flip(-1)])
+    normals = vertex_normals(positions, twin)
+    assert torch.allclose(normals.abs(), torch.tensor([0.0, 0, 1]).expand(4, 3), atol=1e-6)
