@@ -11,13 +11,14 @@ median over RUNS runs (after WARMUP warm-ups) of:
 - fwd+bwd:  that forward plus backward of rgba.sum();
 - gl:       OpenGLRenderer.render_batch of the same frames (upload, draw, read back).
 
-Run: python benchmarks/render.py [--runs N]. The last line is machine-readable:
+Run: python benchmarks/render.py [--runs N] [--threads N] [--profile]. The last line is machine-readable:
     render_256_b4_fwdbwd_ms=<float> gl_256_b4_ms=<float>
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import sys
@@ -83,7 +84,8 @@ def build_batch():
     return positions, normals, uvs, faces, textures, counts
 
 
-def median_ms(fn, runs: int) -> float:
+def median_ms(fn, runs: int) -> tuple[float, float]:
+    """(median, min) wall time in ms over `runs` calls after WARMUP untimed ones."""
     for _ in range(WARMUP):
         fn()
     times = []
@@ -91,23 +93,29 @@ def median_ms(fn, runs: int) -> float:
         start = time.perf_counter()
         fn()
         times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
+    return statistics.median(times), min(times)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=10, help="timed runs per measurement (>= 10)")
     parser.add_argument("--profile", action="store_true", help="also print a torch.profiler table at 256x256")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch and numba threads (default: as configured); 1 is far less sensitive to a loaded CPU")
     args = parser.parse_args()
 
     import numba
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+        numba.set_num_threads(args.threads)  # numba's OpenMP layer shares torch's runtime: set both
 
     from meshseal.render import MeshBatch, MeshRenderer, sample_seed_cameras, sample_seed_lights
 
     load_start = os.getloadavg()
     print(f"start: loadavg {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f} (1/5/15 min), "
           f"{os.cpu_count()} CPUs, torch {torch.__version__} with {torch.get_num_threads()} threads, "
-          f"numba {numba.__version__} with {numba.config.NUMBA_NUM_THREADS} threads")
+          f"numba {numba.__version__} with {numba.get_num_threads()} threads")
 
     prep = time.perf_counter()
     positions, normals, uvs, faces, textures, counts = build_batch()
@@ -148,7 +156,7 @@ def main() -> None:
     for height, width in SIZES:
         fwd = median_ms(lambda: forward(height, width), args.runs)
         fwdbwd = median_ms(lambda: forward_backward(height, width), args.runs)
-        gl_ms = median_ms(lambda: gl_render(height, width), args.runs) if gl is not None else float("nan")
+        gl_ms = median_ms(lambda: gl_render(height, width), args.runs) if gl is not None else (math.nan, math.nan)
         rows.append((height, width, fwd, fwdbwd, gl_ms))
         if height == 256 and width == 256 and gl is not None:
             with torch.no_grad():
@@ -162,12 +170,14 @@ def main() -> None:
         layer = "not initialised"
     print(f"numba threading layer: {layer}; torch threads: {torch.get_num_threads()}")
     print()
-    print(f"{'size (HxW)':>11} | {'fwd ms':>8} | {'fwd+bwd ms':>10} | {'GL ms':>7} | {'fwd/GL':>7} | {'fwd+bwd/GL':>10}")
-    print("-" * 70)
+    print(f"{'size (HxW)':>11} | {'fwd ms':>15} | {'fwd+bwd ms':>15} | {'GL ms':>13} | {'fwd/GL':>6} | {'fwd+bwd/GL':>10}")
+    print(f"{'':>11} | {'median (min)':>15} | {'median (min)':>15} | {'median (min)':>13} | {'':>6} | {'':>10}")
+    print("-" * 88)
     for height, width, fwd, fwdbwd, gl_ms in rows:
-        print(f"{f'{height}x{width}':>11} | {fwd:8.1f} | {fwdbwd:10.1f} | {gl_ms:7.2f} | "
-              f"{fwd / gl_ms:7.1f} | {fwdbwd / gl_ms:10.1f}")
-    print(f"(batch {BATCH}, blend 'splat', float32, median of {args.runs} runs after {WARMUP} warm-ups)")
+        print(f"{f'{height}x{width}':>11} | {fwd[0]:7.1f} ({fwd[1]:5.1f}) | {fwdbwd[0]:7.1f} ({fwdbwd[1]:5.1f}) | "
+              f"{gl_ms[0]:6.1f} ({gl_ms[1]:4.1f}) | {fwd[0] / gl_ms[0]:6.1f} | {fwdbwd[0] / gl_ms[0]:10.1f}")
+    print(f"(batch {BATCH}, blend 'splat', float32; median and min of {args.runs} runs after {WARMUP} warm-ups; "
+          f"ratios of medians)")
 
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
@@ -181,7 +191,7 @@ def main() -> None:
     load_end = os.getloadavg()
     print(f"end: loadavg {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f} (1/5/15 min)")
     at_256 = next(r for r in rows if r[0] == 256 and r[1] == 256)
-    print(f"render_256_b4_fwdbwd_ms={at_256[3]:.2f} gl_256_b4_ms={at_256[4]:.2f}")
+    print(f"render_256_b4_fwdbwd_ms={at_256[3][0]:.2f} gl_256_b4_ms={at_256[4][0]:.2f}")
 
 
 if __name__ == "__main__":

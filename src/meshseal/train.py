@@ -5,8 +5,10 @@ Curriculum (each stage is a config knob; see docs/training.md):
    the watermarked texture itself (no renderer: fast), so the decoder starts from a working code;
 2. end to end through the differentiable renderer with random cameras, lights and backgrounds, the
    3D and 2D distortions switched on after `distortion_start` steps;
-throughout, the invisibility losses ramp up over `warmup_steps`, and the rendered-image loss weight is
-adapted (dual ascent) to hold the rendered PSNR at `target_psnr`.
+the texture- and rendered-image loss weights are adapted by dual ascent to hold the texture PSNR at
+`target_psnr_texture` and the rendered PSNR at `target_psnr` (fixed weights, as in the seed, when the
+targets are null), so the mark is always as strong as the invisibility budget allows; the vertex loss
+ramps up over `warmup_steps`.
 """
 
 from __future__ import annotations
@@ -57,7 +59,9 @@ class TrainSettings:
     distortion_start: int = 0
     distortion_3d: float = 1.0
     distortion_2d: float = 0.0
-    target_psnr: float | None = None
+    target_psnr: float | None = None  # rendered PSNR to hold (dual ascent on the image-loss weight)
+    target_psnr_texture: float | None = None  # texture PSNR to hold (dual ascent on the texture-loss weight)
+    dual_rate: float = 0.05  # weight *= exp(rate * (target - measured)) each step
     val_every: int = 250
     val_meshes: int = 32
     checkpoint_every: int = 250
@@ -118,7 +122,7 @@ def texture_views(texture: torch.Tensor, size: int, generator: torch.Generator) 
     what a render of a textured surface looks like, without rendering."""
     n = texture.shape[0]
     rand = lambda *shape: torch.rand(*shape, generator=generator)  # noqa: E731
-    zoom = 0.35 + 0.65 * rand(n)  # fraction of the texture across the view
+    zoom = 0.4 + 1.1 * rand(n)  # fraction of the texture across the view (renders show 0.5-1.5)
     angle = 2 * math.pi * rand(n)
     squash = 0.45 + 0.55 * rand(n)  # foreshortening
     c, s = torch.cos(angle), torch.sin(angle)
@@ -161,6 +165,28 @@ def _load_optimizer_tensors(optimizer, parameters, tensors) -> None:
         optimizer.state[parameters[int(index)]][key] = value
 
 
+class CachedItems:
+    """Keeps each item's geometry in memory after the first read (the textures may change per epoch)."""
+
+    def __init__(self, dataset):
+        self.dataset = dataset
+        self.geometry: dict[int, dict] = {}
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.dataset.set_epoch(epoch)
+
+    def __getitem__(self, index: int) -> dict:
+        if index not in self.geometry:
+            item = self.dataset[index]
+            self.geometry[index] = {k: v for k, v in item.items() if k != "texture"}
+            return item
+        texture = torch.from_numpy(self.dataset.texture_for(index).copy()).permute(2, 0, 1).float() / 255.0
+        return self.geometry[index] | {"texture": texture}
+
+
 class Trainer:
     def __init__(self, config: TrainConfig, out_dir, resume: bool = False, device: str = "cpu", log=print):
         from .data.dataset import MeshDataset
@@ -169,7 +195,7 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.train_set = MeshDataset(config.data, "train", retexture=config.train.retexture, seed=config.seed)
+        self.train_set = CachedItems(MeshDataset(config.data, "train", retexture=config.train.retexture, seed=config.seed))
         self.val_set = MeshDataset(config.data, "test", seed=config.seed)
         if len(self.train_set) == 0:
             raise MeshsealError(f"{config.data}: the train split is empty")
@@ -180,6 +206,7 @@ class Trainer:
         self.renderer = MeshRenderer()
         self.step = 0
         self.image_weight = config.loss.image
+        self.texture_weight = config.loss.texture
         self.elapsed = 0.0
         if resume and (self.out / "checkpoint.safetensors").is_file():
             self._restore()
@@ -190,7 +217,8 @@ class Trainer:
         tensors |= {f"optim.{k}": v for k, v in _optimizer_tensors(self.optimizer, self.parameters).items()}
         tensors["rng.generator"] = self.generator.get_state()
         tensors["rng.torch"] = torch.get_rng_state()
-        state = {"step": self.step, "image_weight": self.image_weight, "elapsed": self.elapsed}
+        state = {"step": self.step, "image_weight": self.image_weight, "texture_weight": self.texture_weight,
+                 "elapsed": self.elapsed}
         save_tensors(tensors, self.out / "checkpoint.safetensors", {"state": json.dumps(state),
                                                                      "config": json.dumps(self.config.to_dict())})
 
@@ -208,6 +236,7 @@ class Trainer:
         self.generator.set_state(tensors["rng.generator"])
         torch.set_rng_state(tensors["rng.torch"])
         self.step, self.image_weight, self.elapsed = state["step"], state["image_weight"], state["elapsed"]
+        self.texture_weight = state.get("texture_weight", self.texture_weight)
         self.log(f"resumed from step {self.step}")
 
     # -------------------------------------------------------- data
@@ -228,6 +257,12 @@ class Trainer:
         warmup = self.config.train.warmup_steps
         return 1.0 if warmup <= 0 else min(1.0, self.step / warmup)
 
+    def _dual(self, weight: float, target: float | None, measured: float) -> float:
+        """Dual ascent on a PSNR constraint: raise the loss weight while below target, lower it above."""
+        if target is None or self.step < self.config.train.warmup_steps or not math.isfinite(measured):
+            return weight
+        return float(min(max(weight * math.exp(self.config.train.dual_rate * (target - measured)), 1e-3), 1e4))
+
     def train_step(self, batch) -> dict[str, float]:
         cfg, weights = self.config.train, self.config.loss
         self.model.train()
@@ -243,8 +278,9 @@ class Trainer:
                 views = Distortions2D(cfg.distortion_2d)(views, self.generator)
             logits = self.model.decode(views)
             texture_term = (marked - batch["texture"]).abs().mean()
-            loss = weights.message * message_loss(logits, message) + ramp * weights.texture * texture_term
+            loss = weights.message * message_loss(logits, message) + self.texture_weight * texture_term
             stats["psnr_texture"] = float(psnr(marked.detach(), batch["texture"]).mean())
+            self.texture_weight = self._dual(self.texture_weight, cfg.target_psnr_texture, stats["psnr_texture"])
             stats["stage"] = 1
         else:
             background = (random_backgrounds(n, self.generator) if cfg.background == "random" else torch.zeros(n, 3))
@@ -258,16 +294,13 @@ class Trainer:
                            + weights.uv_weight * masked_l1(out.uvs_marked, out.uvs, mask))
             texture_term = (out.texture_marked - out.texture).abs().mean()
             image_term = (out.render_marked - out.render).abs().mean()
-            loss = (weights.message * message_loss(logits, message)
-                    + ramp * (weights.vertex * vertex_term + weights.texture * texture_term
-                              + self.image_weight * image_term))
+            loss = (weights.message * message_loss(logits, message) + ramp * weights.vertex * vertex_term
+                    + self.texture_weight * texture_term + self.image_weight * image_term)
             batch_psnr = float(psnr(out.render_marked.detach(), out.render).mean())
-            if cfg.target_psnr is not None and self.step >= cfg.warmup_steps:
-                # Dual ascent on the constraint PSNR >= target: raise the weight when below, lower above.
-                self.image_weight = float(min(max(self.image_weight * math.exp(0.05 * (cfg.target_psnr - batch_psnr)),
-                                                  0.1), 1e4))
-            stats.update(psnr_render=batch_psnr, image_weight=self.image_weight, stage=2,
-                         psnr_texture=float(psnr(out.texture_marked.detach(), out.texture).mean()))
+            texture_psnr = float(psnr(out.texture_marked.detach(), out.texture).mean())
+            self.image_weight = self._dual(self.image_weight, cfg.target_psnr, batch_psnr)
+            self.texture_weight = self._dual(self.texture_weight, cfg.target_psnr_texture, texture_psnr)
+            stats.update(psnr_render=batch_psnr, image_weight=self.image_weight, stage=2, psnr_texture=texture_psnr)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

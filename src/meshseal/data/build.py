@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import multiprocessing
 import os
 import sys
 import time
@@ -28,6 +29,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict
 from pathlib import Path
 
+
 import numpy as np
 from PIL import Image
 
@@ -35,6 +37,9 @@ from ..errors import MeshError, MeshsealError
 from . import sources as S
 from .formats import RawMesh, read_image, read_mesh
 from .process import ProcessOptions, process_mesh, resize
+
+# Workers are spawned, not forked: a fork after torch/numba started their threads can deadlock.
+_SPAWN = multiprocessing.get_context("spawn")
 
 FORMAT_VERSION = 1
 CC0 = {"CC0-1.0", "CC0", "public-domain"}
@@ -287,7 +292,7 @@ def build_pool(out: Path, candidates: list[S.TextureCandidate], size: int, pool_
     rows: list[dict] = []
     start = 0
     progress = _progress(min(pool_size, len(ordered)), "texture pool")
-    with ProcessPoolExecutor(max_workers=workers) as executor:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=_SPAWN) as executor:
         while len(rows) < pool_size and start < len(ordered):
             chunk = ordered[start:start + max(32, int((pool_size - len(rows)) * 1.3))]
             start += len(chunk)
@@ -384,7 +389,7 @@ def build(out, *, sources=S.DEFAULT_SOURCES, texture_sources=S.DEFAULT_TEXTURE_S
     new_failures: dict[str, str] = {}
     if todo:
         progress = _progress(len(todo), "meshes")
-        with ProcessPoolExecutor(max_workers=max(1, int(workers))) as executor, \
+        with ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=_SPAWN) as executor, \
                 open(failed_file, "a") as failed_log:
             futures = [executor.submit(mesh_worker, a.to_dict(), options, str(out), pool_paths, seed) for a in todo]
             for future in as_completed(futures):
@@ -426,8 +431,10 @@ def build(out, *, sources=S.DEFAULT_SOURCES, texture_sources=S.DEFAULT_TEXTURE_S
 
 
 def _reason(error: str) -> str:
+    import re
+
     text = error.split(": ", 1)[-1] if error.startswith("/") else error
-    return text.split("(")[0].strip()[:80]
+    return re.sub(r"\d+", "N", text.split("(")[0].strip())[:80]
 
 
 def write_manifest(out: Path, rows: list[dict]) -> None:

@@ -121,6 +121,12 @@ def _simplify(positions: np.ndarray, faces: np.ndarray, target: int):
 
     new_positions, new_faces = fast_simplification.simplify(positions, faces.astype(np.int32),
                                                             target_count=int(target))
+    for _ in range(3):  # the simplifier may stop a little above the target: go again on its result
+        if len(new_faces) <= target or len(new_faces) <= 4:
+            break
+        count = min(int(target * 0.97), len(new_faces) - 1)
+        new_positions, new_faces = fast_simplification.simplify(np.asarray(new_positions), np.asarray(
+            new_faces, dtype=np.int32), target_count=count)
     new_faces = np.asarray(new_faces, dtype=np.int64)
     if len(new_faces) == 0:
         raise MeshError("simplification removed every face")
@@ -128,6 +134,33 @@ def _simplify(positions: np.ndarray, faces: np.ndarray, target: int):
     remap = np.full(len(new_positions), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     return np.asarray(new_positions, dtype=np.float64)[used], remap[new_faces]
+
+
+def _cluster(positions: np.ndarray, faces: np.ndarray, max_verts: int):
+    """Vertex clustering on a grid (merges disconnected parts such as leaves), <= max_verts vertices."""
+    low, high = 1, 1024
+    while low < high:  # the finest grid whose occupied cells fit
+        res = (low + high + 1) // 2
+        cells = np.floor((positions + 1.0) * 0.5 * res).astype(np.int64)
+        if len(np.unique(cells, axis=0)) <= max_verts:
+            low = res
+        else:
+            high = res - 1
+    cells = np.floor((positions + 1.0) * 0.5 * low).astype(np.int64)
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    merged = np.zeros((len(counts), 3))
+    np.add.at(merged, inverse, positions)
+    merged /= counts[:, None]
+    new_faces = inverse[faces]
+    good = (new_faces[:, 0] != new_faces[:, 1]) & (new_faces[:, 1] != new_faces[:, 2]) & \
+           (new_faces[:, 0] != new_faces[:, 2])
+    new_faces = np.unique(np.sort(new_faces[good], axis=1), axis=0, return_index=True)[1]
+    new_faces = inverse[faces][good][np.sort(new_faces)]
+    used = np.unique(new_faces)
+    remap = np.full(len(merged), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return merged[used], remap[new_faces]
 
 
 def _closest_faces(points: np.ndarray, tri: np.ndarray, tree: cKDTree, k: int = 8):
@@ -278,6 +311,14 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
     new_positions, new_faces = welded, welded_faces
     if len(new_faces) > target:
         new_positions, new_faces = _simplify(welded, welded_faces, target)
+        if len(new_faces) > 1.2 * target or len(new_positions) > options.max_verts:
+            # the simplifier stalls on many disconnected parts (foliage): cluster vertices first
+            welded, welded_faces = _cluster(welded, welded_faces, int(0.6 * options.max_verts))
+            if len(welded_faces) < options.min_faces:
+                raise MeshError("mesh collapses when simplified")
+            new_positions, new_faces = welded, welded_faces
+            if len(new_faces) > target:
+                new_positions, new_faces = _simplify(welded, welded_faces, target)
 
     for _attempt in range(4):
         if has_texture:
@@ -323,6 +364,16 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
         new_positions, new_faces = _simplify(welded, welded_faces, target)
         if len(new_faces) > 0.95 * before:
             break  # the simplifier cannot reduce this mesh any further
+    if len(out_positions) > options.max_verts or len(out_faces) > options.n_faces:
+        # last resort: cluster vertices, simplify, spherical uvs
+        welded, welded_faces = _cluster(welded, welded_faces, int(0.6 * options.max_verts))
+        new_positions, new_faces = welded, welded_faces
+        if len(new_faces) > options.n_faces:
+            new_positions, new_faces = _simplify(welded, welded_faces, int(0.9 * options.n_faces))
+        if len(new_faces) >= options.min_faces:
+            has_texture, out_positions, out_faces = False, new_positions, new_faces
+            out_normals = _vertex_normals(new_positions, new_faces)
+            out_uvs = _spherical_uv(new_positions)
     if len(out_positions) > options.max_verts:
         raise MeshError(f"{len(out_positions)} vertices after simplification exceed the cap {options.max_verts}")
 

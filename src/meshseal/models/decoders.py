@@ -10,16 +10,21 @@ from .blocks import ConvBNReLU
 
 class HiddenDecoder(nn.Module):
     """HiDDeN's decoder as in the seed: `blocks` conv-BN-ReLU blocks, the last two with stride 2, global
-    average pooling, a linear layer to N bits. `stem_stride` 2 halves the resolution first (CPU size);
-    `widths` lets later blocks grow."""
+    average pooling, a linear layer to N bits. CPU-sized variants: `stem_stride` 2 or 4 makes the first
+    one or two blocks stride 2 as well, and `growth` 2 doubles the width at each of the last two blocks."""
 
     def __init__(self, n_bits: int, channels: int = 64, blocks: int = 7, stem_stride: int = 1,
                  growth: int = 1):
         super().__init__()
+        if stem_stride not in (1, 2, 4):
+            raise ValueError("decoder_stem_stride must be 1, 2 or 4")
+        stem_blocks = {1: 0, 2: 1, 4: 2}[stem_stride]
         layers, in_channels = [], 3
         for index in range(blocks):
-            stride = 2 if index >= blocks - 2 else (stem_stride if index == 0 else 1)
+            stride = 2 if index >= blocks - 2 or index < stem_blocks else 1
             out_channels = channels * (growth ** max(0, index - (blocks - 3)))
+            if index == 0 and stem_blocks == 2:
+                out_channels = max(8, channels // 2)
             layers.append(ConvBNReLU(in_channels, out_channels, stride=stride))
             in_channels = out_channels
         self.features = nn.Sequential(*layers)

@@ -44,25 +44,42 @@ class TextureEncoder(nn.Module):
 class HiddenTextureEncoder(TextureEncoder):
     """HiDDeN's encoder: conv-BN-ReLU blocks, the message broadcast and concatenated, two more blocks.
 
-    `downsample` > 1 runs the blocks at 1/downsample resolution (a CPU-sized variant) and upsamples.
+    `downsample` > 1 runs every block at 1/downsample of the working size and upsamples the residual:
+    a CPU-sized variant whose marks are smoother, so they survive the resampling of rendering.
+    `tile` > 0 adds a learned *periodic carrier*: a linear map from the bits to a tile x tile pattern
+    repeated over the texture. A constant broadcast of the bits gives convolutions nothing spatial to
+    build on (HiDDeN must borrow structure from the image, which trains slowly); the carrier gives every
+    bit a spatial signature from the start, and its periodicity puts the whole message in every patch
+    of the surface, whatever part of it a view shows.
     """
 
     def __init__(self, n_bits: int, channels: int = 64, blocks: int = 4, size: int = 128,
-                 strength: float = 0.1, downsample: int = 1):
+                 strength: float = 0.1, downsample: int = 1, tile: int = 0, tile_channels: int = 8):
         super().__init__()
-        self.size, self.strength, self.downsample = size, strength, downsample
-        layers = [ConvBNReLU(3, channels, stride=downsample)]
-        layers += [ConvBNReLU(channels, channels) for _ in range(blocks - 1)]
+        self.size, self.strength, self.downsample, self.tile = size, strength, downsample, tile
+        layers = [ConvBNReLU(3, channels)] + [ConvBNReLU(channels, channels) for _ in range(blocks - 1)]
         self.features = nn.Sequential(*layers)
-        self.after = ConvBNReLU(channels + 3 + n_bits, channels)
+        carrier_channels = tile_channels if tile else 0
+        self.carrier = nn.Linear(n_bits, tile_channels * tile * tile) if tile else None
+        self.carrier_channels = carrier_channels
+        self.after = ConvBNReLU(channels + 3 + n_bits + carrier_channels, channels)
         self.out = nn.Conv2d(channels, 3, 1)
 
     def residual(self, texture, message):
-        features = self.features(texture)
+        full_size = texture.shape[-2:]
         if self.downsample > 1:
-            features = F.interpolate(features, size=texture.shape[-2:], mode="bilinear", align_corners=False)
-        bits = broadcast_message(message, *texture.shape[-2:])
-        return self.out(self.after(torch.cat([features, texture, bits], dim=1)))
+            texture = F.interpolate(texture, scale_factor=1.0 / self.downsample, mode="bilinear",
+                                    align_corners=False, antialias=True)
+        height, width = texture.shape[-2:]
+        inputs = [self.features(texture), texture, broadcast_message(message, height, width)]
+        if self.carrier is not None:
+            pattern = self.carrier(2.0 * message - 1.0).reshape(-1, self.carrier_channels, self.tile, self.tile)
+            repeats = (-(-height // self.tile), -(-width // self.tile))
+            inputs.append(pattern.repeat(1, 1, *repeats)[..., :height, :width])
+        residual = self.out(self.after(torch.cat(inputs, dim=1)))
+        if self.downsample > 1:
+            residual = F.interpolate(residual, size=full_size, mode="bilinear", align_corners=False)
+        return residual
 
 
 class UNetTextureEncoder(TextureEncoder):

@@ -26,6 +26,8 @@ class ModelConfig:
     texture_downsample: int = 1
     texture_strength: float = 0.1
     texture_size: int = 128
+    texture_tile: int = 0  # > 0: a learned periodic carrier of this period (in working-size texels)
+    texture_tile_channels: int = 8
     vertex_encoder: str = "pointnet2"  # pointnet (max pooling) | pointnet2 (average pooling)
     vertex_width: int = 64
     normal_strength: float = 0.05
@@ -62,7 +64,8 @@ class WatermarkModel(nn.Module):
             if config.texture_encoder == "hidden":
                 self.texture_encoder = HiddenTextureEncoder(n, config.texture_channels, config.texture_blocks,
                                                             config.texture_size, config.texture_strength,
-                                                            config.texture_downsample)
+                                                            config.texture_downsample, config.texture_tile,
+                                                            config.texture_tile_channels)
             elif config.texture_encoder == "unet":
                 self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
             else:

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import torch
 
-from .rasterizer import Fragments
+from .rasterizer import Fragments, gather_corners
 
 
 def interpolate(attributes: torch.Tensor, fragments: Fragments, perspective: bool = True) -> torch.Tensor:
     """Interpolate per-vertex attributes (B, V, C) at the fragments -> (P, C)."""
-    values = attributes[fragments.batch.unsqueeze(1) if attributes.shape[0] > 1
-                        else torch.zeros_like(fragments.batch).unsqueeze(1), fragments.vertex]
+    values = gather_corners(attributes, fragments.batch, fragments.vertex)  # (P, 3, C)
     weights = fragments.bary if perspective else fragments.screen_bary
     return (values * weights.unsqueeze(-1)).sum(dim=1)
 

@@ -90,6 +90,17 @@ def clip_to_screen(clip: torch.Tensor, height: int, width: int) -> torch.Tensor:
     return torch.stack([(ndc[..., 0] + 1.0) * 0.5 * width, (1.0 - ndc[..., 1]) * 0.5 * height], dim=-1)
 
 
+def gather_corners(values: torch.Tensor, batch: torch.Tensor, vertex: torch.Tensor) -> torch.Tensor:
+    """values (B, V, C) (or (1, V, C), shared) at the corners vertex (P, 3) of elements batch (P,) -> (P, 3, C).
+
+    One index_select on the flattened table: its backward is an index_add, about twice as fast on the
+    CPU as the accumulating index_put of advanced indexing.
+    """
+    n_vertices, channels = values.shape[1], values.shape[2]
+    index = vertex if values.shape[0] == 1 else batch.unsqueeze(1) * n_vertices + vertex
+    return values.reshape(-1, channels).index_select(0, index.reshape(-1)).reshape(*vertex.shape, channels)
+
+
 def _batched_faces(faces: torch.Tensor, n_batch: int) -> torch.Tensor:
     return faces.unsqueeze(0) if faces.dim() == 2 else faces
 
@@ -123,8 +134,10 @@ def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int) 
     row = torch.div(within, width, rounding_mode="floor")
     col = within - row * width
     batched_faces = _batched_faces(faces, n_batch)
-    vertex = batched_faces[batch if batched_faces.shape[0] > 1 else torch.zeros_like(batch), face]
-    corners = clip[batch.unsqueeze(1), vertex]  # (P, 3, 4)
+    n_face_sets, n_faces = batched_faces.shape[0], batched_faces.shape[1]
+    face_index = face if n_face_sets == 1 else batch * n_faces + face
+    vertex = batched_faces.reshape(-1, 3).index_select(0, face_index)
+    corners = gather_corners(clip, batch, vertex)  # (P, 3, 4)
     xy = clip_to_screen(corners, height, width)  # (P, 3, 2)
     px = (col.to(clip.dtype) + 0.5).unsqueeze(1)
     py = (row.to(clip.dtype) + 0.5).unsqueeze(1)

@@ -7,13 +7,18 @@ vertex positions and antialiases edges; interior pixels keep a total weight of e
 
 Because every splat position equals its pixel centre in the forward pass, the Gaussian weights are
 linearised around the centre: w_o(d) = g_o (1 + o.d / sigma^2) for a splat displaced by d. Value and
-first derivative are exact at d = 0, and the whole splat becomes one 3x3 convolution (fast on CPU).
+first derivative are exact at d = 0, and the whole splat becomes one 3x3 convolution. On the CPU (float32
+and float64) the same linear map and its exact adjoint run as two fused numba kernels that skip the
+background (alpha = 0) sources; elsewhere (CUDA, other dtypes) it is a torch conv2d.
 """
 
 from __future__ import annotations
 
+import numba
+import numpy as np
 import torch
 import torch.nn.functional as F
+from torch.autograd.function import once_differentiable
 
 
 def _kernels(sigma: float, dtype, device) -> torch.Tensor:
@@ -27,13 +32,9 @@ def _kernels(sigma: float, dtype, device) -> torch.Tensor:
     return torch.stack([gauss, -gauss * ox / sigma ** 2, -gauss * oy / sigma ** 2]).to(dtype=dtype, device=device)
 
 
-def splat(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor, background: torch.Tensor,
-          sigma: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """Splat colours (B, H, W, C) with coverage alpha (B, H, W) at positions (B, H, W, 2) in pixels.
-
-    splat_xy must lie at (or within a small fraction of a pixel of) the pixel centres (j + 0.5, i + 0.5).
-    Returns the composited image (B, H, W, C) over `background` (C,) or (B, C) and the coverage (B, H, W).
-    """
+def _accumulate_conv(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor,
+                     sigma: float) -> torch.Tensor:
+    """The splat's accumulation (B, H, W, C + 1) (premultiplied colour, coverage) as one conv2d."""
     n_batch, height, width, channels = color.shape
     rows = torch.arange(height, dtype=color.dtype, device=color.device).reshape(1, height, 1) + 0.5
     cols = torch.arange(width, dtype=color.dtype, device=color.device).reshape(1, 1, width) + 0.5
@@ -47,8 +48,191 @@ def splat(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor, back
     index = torch.arange(n, device=color.device)
     for kind in range(3):
         weight[index, kind * n + index] = kernels[kind]
-    accumulated = F.conv2d(stacked, weight, padding=1)  # (B, C+1, H, W)
-    coverage = accumulated[:, -1]
-    image = accumulated[:, :-1] / coverage.clamp_min(1.0).unsqueeze(1)
-    image = image + (1.0 - coverage.clamp(max=1.0)).unsqueeze(1) * background.to(color.dtype).reshape(-1, channels, 1, 1)
-    return image.permute(0, 2, 3, 1), coverage.clamp(max=1.0)
+    return F.conv2d(stacked, weight, padding=1).permute(0, 2, 3, 1)  # (B, H, W, C+1)
+
+
+@numba.njit(parallel=True, cache=True)
+def _accumulate_forward(color, alpha, xy, gauss, inv_var, out):  # pragma: no cover - compiled
+    """out[b, i, j] = sum over sources q = (i - oy, j - ox) with alpha != 0 of
+    alpha(q) g_o (1 + (ox dx(q) + oy dy(q)) / sigma^2) * (color(q), 1); d(q) = xy(q) - centre(q).
+    Each output row is written by one thread (gather over the 3 source rows)."""
+    n_batch, height, width, channels = color.shape
+    for line in numba.prange(n_batch * height):
+        b = line // height
+        i = line - b * height
+        out[b, i] = 0.0
+        for oy in range(-1, 2):
+            si = i - oy
+            if si < 0 or si >= height:
+                continue
+            for sj in range(width):
+                a = alpha[b, si, sj]
+                if a == 0.0:
+                    continue
+                dx = xy[b, si, sj, 0] - (sj + 0.5)
+                dy = xy[b, si, sj, 1] - (si + 0.5)
+                for ox in range(-1, 2):
+                    j = sj + ox
+                    if j < 0 or j >= width:
+                        continue
+                    g = gauss[oy + 1, ox + 1]
+                    w = (g + g * (ox * dx + oy * dy) * inv_var) * a
+                    for c in range(channels):
+                        out[b, i, j, c] += w * color[b, si, sj, c]
+                    out[b, i, j, channels] += w
+
+
+@numba.njit(parallel=True, cache=True)
+def _accumulate_backward(color, alpha, xy, gauss, inv_var, grad_out, every_alpha,
+                         grad_color, grad_alpha, grad_xy):  # pragma: no cover - compiled
+    """The adjoint of _accumulate_forward, per source pixel q over its 9 targets q + o. Sources with
+    alpha = 0 get zero colour and position gradients; their alpha gradient only if `every_alpha`."""
+    n_batch, height, width, channels = color.shape
+    for line in numba.prange(n_batch * height):
+        b = line // height
+        i = line - b * height
+        for j in range(width):
+            a = alpha[b, i, j]
+            grad_xy[b, i, j, 0] = 0.0
+            grad_xy[b, i, j, 1] = 0.0
+            grad_alpha[b, i, j] = 0.0
+            for c in range(channels):
+                grad_color[b, i, j, c] = 0.0
+            if a == 0.0 and not every_alpha:
+                continue
+            dx = xy[b, i, j, 0] - (j + 0.5)
+            dy = xy[b, i, j, 1] - (i + 0.5)
+            gdx = 0.0
+            gdy = 0.0
+            galpha = 0.0
+            for oy in range(-1, 2):
+                ti = i + oy
+                if ti < 0 or ti >= height:
+                    continue
+                for ox in range(-1, 2):
+                    tj = j + ox
+                    if tj < 0 or tj >= width:
+                        continue
+                    g = gauss[oy + 1, ox + 1]
+                    w = g + g * (ox * dx + oy * dy) * inv_var
+                    dot = grad_out[b, ti, tj, channels]
+                    for c in range(channels):
+                        go = grad_out[b, ti, tj, c]
+                        grad_color[b, i, j, c] += w * go
+                        dot += color[b, i, j, c] * go
+                    galpha += w * dot
+                    gdx += g * ox * dot
+                    gdy += g * oy * dot
+            for c in range(channels):
+                grad_color[b, i, j, c] *= a
+            grad_alpha[b, i, j] = galpha
+            grad_xy[b, i, j, 0] = gdx * inv_var * a
+            grad_xy[b, i, j, 1] = gdy * inv_var * a
+
+
+@numba.njit(parallel=True, cache=True)
+def _composite_forward(accumulated, background, image, coverage):  # pragma: no cover - compiled
+    """image = acc[:C] / max(cov, 1) + (1 - min(cov, 1)) * background[b]; coverage = min(cov, 1)."""
+    n_batch, height, width, channels = image.shape
+    for line in numba.prange(n_batch * height):
+        b = line // height
+        i = line - b * height
+        for j in range(width):
+            cov = accumulated[b, i, j, channels]
+            scale = 1.0 / max(cov, 1.0)
+            under = min(cov, 1.0)
+            for c in range(channels):
+                image[b, i, j, c] = accumulated[b, i, j, c] * scale + (1.0 - under) * background[b, c]
+            coverage[b, i, j] = under
+
+
+@numba.njit(parallel=True, cache=True)
+def _composite_backward(accumulated, background, grad_image, grad_coverage, grad_accumulated):  # pragma: no cover
+    """Adjoint of _composite_forward w.r.t. acc, with torch's clamp subgradients (mask cov >= 1 for
+    max(cov, 1), cov <= 1 for min(cov, 1))."""
+    n_batch, height, width, channels = grad_image.shape
+    for line in numba.prange(n_batch * height):
+        b = line // height
+        i = line - b * height
+        for j in range(width):
+            cov = accumulated[b, i, j, channels]
+            big = max(cov, 1.0)
+            grad_cov = 0.0
+            for c in range(channels):
+                g = grad_image[b, i, j, c]
+                grad_accumulated[b, i, j, c] = g / big
+                if cov >= 1.0:
+                    grad_cov -= g * accumulated[b, i, j, c] / (big * big)
+                if cov <= 1.0:
+                    grad_cov -= g * background[b, c]
+            if cov <= 1.0:
+                grad_cov += grad_coverage[b, i, j]
+            grad_accumulated[b, i, j, channels] = grad_cov
+
+
+def _numpy(tensor: torch.Tensor, dtype) -> np.ndarray:
+    return tensor.detach().to(dtype).contiguous().numpy()
+
+
+class _SplatCPU(torch.autograd.Function):
+    """The whole splat on the CPU (numba): accumulation and compositing, with the exact adjoint
+    (first order only). background is (B, C)."""
+
+    @staticmethod
+    def forward(ctx, color, alpha, splat_xy, background, sigma):
+        dtype = color.dtype
+        c, a, xy = _numpy(color, dtype), _numpy(alpha, dtype), _numpy(splat_xy, dtype)
+        bg = _numpy(background, dtype)
+        n_batch, height, width, channels = c.shape
+        gauss = _kernels(sigma, dtype, "cpu")[0].numpy()
+        accumulated = np.empty((n_batch, height, width, channels + 1), dtype=c.dtype)
+        _accumulate_forward(c, a, xy, gauss, c.dtype.type(1.0 / (sigma * sigma)), accumulated)
+        image = np.empty_like(c)
+        coverage = np.empty_like(a)
+        _composite_forward(accumulated, bg, image, coverage)
+        ctx.save_for_backward(color, alpha, splat_xy, background)
+        ctx.sigma, ctx.accumulated = sigma, accumulated  # a private array: no reference to the outputs
+        return torch.from_numpy(image), torch.from_numpy(coverage)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_image, grad_coverage):
+        color, alpha, splat_xy, background = ctx.saved_tensors
+        dtype, sigma, accumulated = color.dtype, ctx.sigma, ctx.accumulated
+        c, a, xy = _numpy(color, dtype), _numpy(alpha, dtype), _numpy(splat_xy, dtype)
+        if grad_image is None:
+            grad_image = color.new_zeros(color.shape)
+        if grad_coverage is None:
+            grad_coverage = alpha.new_zeros(alpha.shape)
+        grad_image_np = _numpy(grad_image, dtype)
+        grad_accumulated = np.empty_like(accumulated)
+        _composite_backward(accumulated, _numpy(background, dtype), grad_image_np, _numpy(grad_coverage, dtype),
+                            grad_accumulated)
+        gauss = _kernels(sigma, dtype, "cpu")[0].numpy()
+        grad_color, grad_alpha, grad_xy = np.empty_like(c), np.empty_like(a), np.empty_like(xy)
+        _accumulate_backward(c, a, xy, gauss, c.dtype.type(1.0 / (sigma * sigma)), grad_accumulated,
+                             bool(ctx.needs_input_grad[1]), grad_color, grad_alpha, grad_xy)
+        grad_background = None
+        if ctx.needs_input_grad[3]:
+            coverage = torch.from_numpy(accumulated[..., -1:]).clamp(max=1.0)
+            grad_background = (torch.from_numpy(grad_image_np) * (1.0 - coverage)).sum((1, 2)).to(background.dtype)
+        return (torch.from_numpy(grad_color), torch.from_numpy(grad_alpha).to(alpha.dtype),
+                torch.from_numpy(grad_xy).to(splat_xy.dtype), grad_background, None)
+
+
+def splat(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor, background: torch.Tensor,
+          sigma: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """Splat colours (B, H, W, C) with coverage alpha (B, H, W) at positions (B, H, W, 2) in pixels.
+
+    splat_xy must lie at (or within a small fraction of a pixel of) the pixel centres (j + 0.5, i + 0.5).
+    Returns the composited image (B, H, W, C) over `background` (C,) or (B, C) and the coverage (B, H, W).
+    """
+    n_batch, channels = color.shape[0], color.shape[-1]
+    background = background.to(color.dtype).reshape(-1, channels)
+    if color.device.type == "cpu" and color.dtype in (torch.float32, torch.float64):
+        return _SplatCPU.apply(color, alpha, splat_xy, background.expand(n_batch, channels), sigma)
+    accumulated = _accumulate_conv(color, alpha, splat_xy, sigma)
+    coverage = accumulated[..., -1]
+    image = accumulated[..., :-1] / coverage.clamp_min(1.0).unsqueeze(-1)
+    image = image + (1.0 - coverage.clamp(max=1.0)).unsqueeze(-1) * background.reshape(-1, 1, 1, channels)
+    return image, coverage.clamp(max=1.0)

@@ -1,0 +1,201 @@
+"""The `meshseal` command line: render and info on every fixture, and one-line errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from meshseal import __version__
+from meshseal.cli import main
+
+FIXTURES = Path(__file__).parent / "fixtures"
+MESHES = ["bunny.glb", "suzanne.glb", "multi_material.glb", "bunny.ply", "cube.off", "tetra.stl",
+          "teapot/teapot.obj", "sh3d_crate/crate.obj", "sh3d_deckChair/deckChair.obj"]
+
+
+def run(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code: int, err: str) -> None:
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("meshseal: error: "), err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("name", MESHES)
+def test_render_every_fixture(name, tmp_path, capsys):
+    out = tmp_path / "image.png"
+    code, stdout, err = run(capsys, "render", FIXTURES / name, "-o", out, "--width", 64, "--height", 48)
+    assert code == 0, err
+    image = np.asarray(Image.open(out))
+    assert image.shape == (48, 64, 3)
+    foreground = image.max(axis=-1) > 0
+    assert 0.02 < foreground.mean() < 0.95  # the object is in view and framed
+    assert np.percentile(image[foreground].max(axis=-1), 90) > 30  # lit, not black
+    assert str(out) in stdout
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_render_is_textured_and_upright(tmp_path, capsys):
+    # The bunny: green grass texture; its ears (the top of the Y-up file) at the top of the image.
+    out = tmp_path / "bunny.png"
+    assert run(capsys, "render", FIXTURES / "bunny.glb", "-o", out, "--width", 96, "--height", 96,
+               "--blend", "hard")[0] == 0
+    image = np.asarray(Image.open(out)).astype(float)
+    foreground = image.max(axis=-1) > 0
+    assert image[foreground][:, 1].mean() > 1.5 * image[foreground][:, 0].mean()  # green
+    assert image[foreground].std(axis=0).mean() > 5  # textured and shaded, not flat
+    rows = np.nonzero(foreground.any(axis=1))[0]
+    # Flipping the up axis puts the bunny on its back: a different silhouette.
+    flipped = tmp_path / "bunny_z.png"
+    assert run(capsys, "render", FIXTURES / "bunny.glb", "-o", flipped, "--width", 96, "--height", 96,
+               "--blend", "hard", "--up", "z")[0] == 0
+    assert not np.array_equal(np.asarray(Image.open(flipped)), image.astype(np.uint8))
+    assert rows.min() > 0 and rows.max() < 95  # framed with a margin
+
+
+def test_render_views_seed_and_options(tmp_path, capsys):
+    out = tmp_path / "view.png"
+    code, stdout, err = run(capsys, "render", FIXTURES / "suzanne.glb", "-o", out, "--views", 3, "--seed", 4,
+                            "--width", 32, "--height", 32)
+    assert code == 0, err
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["view_0.png", "view_1.png", "view_2.png"]
+    first = [np.asarray(Image.open(tmp_path / n)) for n in names]
+    assert not np.array_equal(first[0], first[1])
+    # Same seed -> same images; the any-view sampler gives other views.
+    again = tmp_path / "again"
+    run(capsys, "render", FIXTURES / "suzanne.glb", "-o", again / "view.png", "--views", 3, "--seed", 4,
+        "--width", 32, "--height", 32)
+    assert all(np.array_equal(a, np.asarray(Image.open(again / n))) for a, n in zip(first, names))
+    other = tmp_path / "other"
+    assert run(capsys, "render", FIXTURES / "suzanne.glb", "-o", other / "v.png", "--views", 2, "--seed", 4,
+               "--sampler", "any", "--width", 32, "--height", 32)[0] == 0
+    assert len(list(other.iterdir())) == 2
+    # Explicit camera, light, background.
+    single = tmp_path / "single.png"
+    code, _, err = run(capsys, "render", FIXTURES / "cube.off", "-o", single, "--camera", "0,-4,0.5",
+                       "--light", "1,-3,2", "--background", "0,0,1", "--width", 32, "--height", 32)
+    assert code == 0, err
+    image = np.asarray(Image.open(single))
+    assert tuple(image[0, 0]) == (0, 0, 255)
+    # A camera straight above still works (a different up vector is used).
+    assert run(capsys, "render", FIXTURES / "cube.off", "-o", tmp_path / "top.png", "--camera", "0,0,4",
+               "--width", 16, "--height", 16)[0] == 0
+
+
+def test_render_never_overwrites_the_input(tmp_path, capsys):
+    folder = tmp_path / "crate"
+    shutil.copytree(FIXTURES / "sh3d_crate", folder)
+    (folder / "crate.png").write_bytes((folder / "crate.jpg").read_bytes())
+    (folder / "crate.mtl").write_text((folder / "crate.mtl").read_text().replace("crate.jpg", "crate.png"))
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    # The OBJ's own texture as the output:
+    assert_one_line_error(*run(capsys, "render", folder / "crate.obj", "-o", folder / "crate.png")[::2])
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+
+
+@pytest.mark.parametrize("name", ["bunny.glb", "multi_material.glb", "sh3d_deckChair/deckChair.obj", "cube.off"])
+def test_info_json(name, capsys):
+    code, out, err = run(capsys, "info", FIXTURES / name, "--json")
+    assert code == 0, err
+    lines = out.strip().splitlines()
+    assert len(lines) == 1
+    info = json.loads(lines[0])
+    assert {"vertices", "faces", "parts", "materials", "uvs", "normals", "up_axis", "bounds"} <= set(info)
+    assert info["vertices"] > 0 and info["faces"] > 0
+    assert len(info["bounds"]["min"]) == 3 and all(a <= b for a, b in zip(info["bounds"]["min"],
+                                                                             info["bounds"]["max"]))
+    if name == "multi_material.glb":
+        assert info["faces"] == 1152 and len(info["parts"]) == 3
+        textures = [m["texture"] for m in info["materials"]]
+        assert sorted(t["width"] for t in textures if t) == [200, 256] and textures.count(None) == 1
+        assert info["uvs"] is True and info["up_axis"] == "y"
+    if name == "cube.off":
+        assert info["uvs"] is False and info["up_axis"] == "z"
+        assert info["bounds"] == {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
+
+
+def test_info_text(capsys):
+    code, out, _ = run(capsys, "info", FIXTURES / "sh3d_deckChair" / "deckChair.obj")
+    assert code == 0
+    assert "faces:     1152" in out and "ChairFrame: texture 200x200" in out and "Metal: no texture" in out
+
+
+def _bad_inputs(tmp_path: Path) -> list[list]:
+    garbage = tmp_path / "garbage.obj"
+    garbage.write_bytes(np.random.default_rng(0).bytes(2048))
+    truncated = tmp_path / "cut.glb"
+    truncated.write_bytes((FIXTURES / "bunny.glb").read_bytes()[:5000])
+    png = tmp_path / "picture.obj"
+    png.write_bytes((FIXTURES / "textures" / "brick.png").read_bytes())
+    empty = tmp_path / "empty.stl"
+    empty.write_bytes(b"")
+    out = tmp_path / "out.png"
+    return [
+        ["render", tmp_path / "missing.glb", "-o", out],
+        ["render", garbage, "-o", out],
+        ["render", truncated, "-o", out],
+        ["render", png, "-o", out],
+        ["render", empty, "-o", out],
+        ["render", FIXTURES / "textures" / "brick.png", "-o", out],  # unsupported extension
+        ["render", FIXTURES / "bunny.glb", "-o", tmp_path / "out.jpg"],
+        ["render", FIXTURES / "bunny.glb", "-o", out, "--camera", "1,2"],
+        ["render", FIXTURES / "bunny.glb", "-o", out, "--camera", "0,0,0"],
+        ["render", FIXTURES / "bunny.glb", "-o", out, "--width", "0"],
+        ["render", FIXTURES / "bunny.glb", "-o", out, "--background", "red"],
+        ["render", FIXTURES / "bunny.glb", "-o", out, "--views", "2", "--camera", "0,-3,2"],
+        ["render", FIXTURES / "bunny.glb", "-o", tmp_path],  # a directory
+        ["render", FIXTURES / "bunny.glb"],  # no -o
+        ["info", tmp_path / "missing.obj"],
+        ["info", garbage, "--json"],
+        ["no-such-command"],
+        [],
+    ]
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    for argv in _bad_inputs(tmp_path):
+        code, out, err = run(capsys, *argv)
+        if argv:
+            assert_one_line_error(code, err)
+        else:
+            assert code == 2 and "Traceback" not in err  # no command: the help, exit 2
+    assert not (tmp_path / "out.png").exists()
+
+
+def test_version_and_help(capsys):
+    code, out, _ = run(capsys, "--version")
+    assert code == 0 and __version__ in out
+    code, out, _ = run(capsys, "render", "--help")
+    assert code == 0 and "--views" in out and "--sampler" in out
+
+
+def _console(*argv, **kwargs) -> subprocess.CompletedProcess:
+    executable = Path(sys.executable).with_name("meshseal")
+    command = [str(executable)] if executable.exists() else [sys.executable, "-m", "meshseal.cli"]
+    return subprocess.run(command + [str(a) for a in argv], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "MESHSEAL_DEBUG": ""}, **kwargs)
+
+
+def test_console_script(tmp_path):
+    result = _console("render", FIXTURES / "teapot" / "teapot.obj", "-o", tmp_path / "t.png", "--width", 24,
+                      "--height", 24)
+    assert result.returncode == 0, result.stderr
+    assert Image.open(tmp_path / "t.png").size == (24, 24)
+    bad = _console("info", tmp_path / "t.png")  # a PNG is not a mesh
+    assert bad.returncode == 2
+    assert bad.stderr.count("\n") == 1 and bad.stderr.startswith("meshseal: error: ")
+    assert "Traceback" not in bad.stderr

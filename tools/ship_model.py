@@ -1,0 +1,95 @@
+"""Ship a trained run as a package model: copy its weights and write the model card from measurements.
+
+    python tools/ship_model.py --run runs/default --data data --name default
+
+Every figure in the card is measured here, by `meshseal.evaluate` on the dataset's test split, with the
+seed given, so anyone can re-run this command and get the same card.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from meshseal.data.dataset import MeshDataset
+from meshseal.distortions import Distortions2D, Distortions3D
+from meshseal.evaluate import evaluate
+from meshseal.models.io import load_model, read_metadata
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "src" / "meshseal" / "weights"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", type=Path, required=True, help="training run folder (has model.safetensors)")
+    parser.add_argument("--data", type=Path, required=True, help="dataset folder (meshseal data build)")
+    parser.add_argument("--name", default="default")
+    parser.add_argument("--views", type=int, default=2, help="views per test mesh")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    source = args.run / "model.safetensors"
+    metadata = read_metadata(source)
+    model = load_model(source)
+    dataset = MeshDataset(args.data, "test", seed=args.seed)
+    rows = {}
+    settings = [("seed views, no attack", "seed", None, None),
+                ("any view, no attack", "any", None, None),
+                ("seed views, 3D distortions", "seed", Distortions3D(1.0), None),
+                ("seed views, 2D attacks (strength 0.5)", "seed", None, Distortions2D(0.5))]
+    for label, sampler, d3, d2 in settings:
+        torch.manual_seed(args.seed)
+        rows[label] = evaluate(model, dataset, None, args.views, args.seed, 128, sampler,
+                               distortions_3d=d3, distortions_2d=d2)
+        print(label, json.dumps(rows[label]), flush=True)
+    stats = json.loads(subprocess.run([sys.executable, "-m", "meshseal.cli", "data", "stats", str(args.data), "--json"],
+                                      capture_output=True, text=True, check=True).stdout)
+    WEIGHTS.mkdir(parents=True, exist_ok=True)
+    target = WEIGHTS / f"{args.name}.safetensors"
+    shutil.copyfile(source, target)
+    config = json.loads(metadata["config"])
+    train_config = json.loads(metadata.get("train_config", "{}"))
+    lines = [
+        f"# Model card: `{args.name}`",
+        "",
+        f"- Payload: **{config['n_bits']} bits**, strategy `{config['strategy']}`; file `{target.name}` "
+        f"({target.stat().st_size / 1e6:.2f} MB, safetensors).",
+        f"- Architecture: texture encoder `{config['texture_encoder']}` ({config['texture_channels']} channels, "
+        f"blocks at 1/{config['texture_downsample']} resolution, residual bound {config['texture_strength']}), "
+        f"decoder `{config['decoder']}` ({config['decoder_channels']} channels, {config['decoder_blocks']} blocks, "
+        f"stem stride {config['decoder_stem_stride']}), decoding on a {config['frame_size']}^2 object-centred frame.",
+        f"- Trained by: `meshseal train --config configs/{train_config.get('name', args.name)}.yaml --out {args.run}` "
+        f"(seed {metadata.get('seed')}, {metadata.get('steps')} steps, "
+        f"{float(metadata.get('training_seconds', 0)) / 60:.1f} min on this repository's 2-core CPU machine).",
+        f"- Data: `meshseal data build --out {args.data}`: {stats.get('n_train')} train / {stats.get('n_test')} test "
+        f"meshes, {stats.get('n_textures')} real texture images, {stats.get('n_categories')} categories "
+        "(Debian packages; see the dataset's manifest for sources and licenses).",
+        f"- Card written by: `python tools/ship_model.py --run {args.run} --data {args.data} --name {args.name} "
+        f"--views {args.views} --seed {args.seed}`",
+        "",
+        f"## Test split ({rows['seed views, no attack']['n_meshes']} meshes x {args.views} views, "
+        "differentiable renderer, 128^2 renders)",
+        "",
+        "| setting | bit acc | std | render PSNR (dB) | render SSIM | texture PSNR (dB) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for label, m in rows.items():
+        lines.append(f"| {label} | {m['bit_acc']:.4f} | {m['bit_acc_std']:.4f} | {m['psnr_render']:.2f} | "
+                     f"{m['ssim_render']:.4f} | {m['psnr_texture']:.2f} |")
+    lines += ["", "Render PSNR/SSIM compare the watermarked and original mesh rendered from the same view and light "
+              "(whole 128^2 frame, as the seed reports). Seed paper (Table 4/5): 0.897 bit accuracy at 8 bits and "
+              "0.636 at 32 bits (texture only), rendered PSNR about 35 dB.", ""]
+    card = WEIGHTS / f"{args.name}.md"
+    card.write_text("\n".join(lines))
+    print(f"wrote {target} and {card}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
