@@ -62,6 +62,7 @@ class TrainSettings:
     target_psnr: float | None = None  # rendered PSNR to hold (dual ascent on the image-loss weight)
     target_psnr_texture: float | None = None  # texture PSNR to hold (dual ascent on the texture-loss weight)
     dual_rate: float = 0.05  # weight *= exp(rate * (target - measured)) each step
+    target_slack: float = 0.0  # PSNR targets start this many dB lower and reach theirs after warmup_steps
     val_every: int = 250
     val_meshes: int = 32
     checkpoint_every: int = 250
@@ -207,6 +208,7 @@ class Trainer:
         self.step = 0
         self.image_weight = config.loss.image
         self.texture_weight = config.loss.texture
+        self.position = (0, 0)  # (epoch, offset) of the next batch
         self.elapsed = 0.0
         if resume and (self.out / "checkpoint.safetensors").is_file():
             self._restore()
@@ -218,7 +220,7 @@ class Trainer:
         tensors["rng.generator"] = self.generator.get_state()
         tensors["rng.torch"] = torch.get_rng_state()
         state = {"step": self.step, "image_weight": self.image_weight, "texture_weight": self.texture_weight,
-                 "elapsed": self.elapsed}
+                 "elapsed": self.elapsed, "position": list(self.position)}
         save_tensors(tensors, self.out / "checkpoint.safetensors", {"state": json.dumps(state),
                                                                      "config": json.dumps(self.config.to_dict())})
 
@@ -237,20 +239,24 @@ class Trainer:
         torch.set_rng_state(tensors["rng.torch"])
         self.step, self.image_weight, self.elapsed = state["step"], state["image_weight"], state["elapsed"]
         self.texture_weight = state.get("texture_weight", self.texture_weight)
+        self.position = tuple(state.get("position", (0, 0)))
         self.log(f"resumed from step {self.step}")
 
     # -------------------------------------------------------- data
     def _batches(self):
-        epoch = 0
+        """Batches in an order drawn from (seed, epoch) alone, so a resumed run continues exactly."""
+        size = self.config.train.batch_size
         while True:
+            epoch, offset = self.position
             self.train_set.set_epoch(epoch)
-            epoch += 1
-            order = torch.randperm(len(self.train_set), generator=self.generator).tolist()
-            size = self.config.train.batch_size
-            for start in range(0, len(order) - size + 1, size):
+            order = torch.randperm(len(self.train_set),
+                                   generator=torch.Generator().manual_seed(self.config.seed * 100_003 + epoch)).tolist()
+            for start in range(offset, len(order) - size + 1, size):
+                self.position = (epoch, start + size)
                 items = [self.train_set[i] for i in order[start:start + size]]
                 yield {key: torch.stack([item[key] for item in items]).to(self.device)
                        for key in items[0] if torch.is_tensor(items[0][key])}
+            self.position = (epoch + 1, 0)
 
     # -------------------------------------------------------- one step
     def _ramp(self) -> float:
@@ -258,9 +264,14 @@ class Trainer:
         return 1.0 if warmup <= 0 else min(1.0, self.step / warmup)
 
     def _dual(self, weight: float, target: float | None, measured: float) -> float:
-        """Dual ascent on a PSNR constraint: raise the loss weight while below target, lower it above."""
-        if target is None or self.step < self.config.train.warmup_steps or not math.isfinite(measured):
+        """Dual ascent on a PSNR constraint: raise the loss weight while below target, lower it above.
+
+        The target itself ramps up from `target - target_slack` over `warmup_steps`: the mark may be
+        strong while the decoder finds it, then is squeezed to the invisibility budget.
+        """
+        if target is None or not math.isfinite(measured):
             return weight
+        target = target - self.config.train.target_slack * (1.0 - self._ramp())
         return float(min(max(weight * math.exp(self.config.train.dual_rate * (target - measured)), 1e-3), 1e4))
 
     def train_step(self, batch) -> dict[str, float]:
@@ -304,7 +315,7 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
-        stats.update(loss=float(loss), bit_acc=float(bit_accuracy(logits.detach(), message).mean()))
+        stats.update(loss=float(loss.detach()), bit_acc=float(bit_accuracy(logits.detach(), message).mean()))
         return stats
 
     # -------------------------------------------------------- loop

@@ -11,7 +11,7 @@ from ..mesh.core import Mesh
 from .cameras import Cameras
 from .interpolate import interpolate, scatter_to_image
 from .lighting import PointLights
-from .rasterizer import Fragments, clip_to_screen, rasterize
+from .rasterizer import Fragments, clip_to_screen, gather_corners, rasterize
 from .shader import PhongShader
 from .texture import sample_textures
 
@@ -123,10 +123,13 @@ class MeshRenderer:
             albedo = world.new_ones(world.shape[0], 3)
         else:
             albedo = sample_textures(batch.textures, interpolated[:, 6:8], material)
-        albedo = albedo * batch.diffuse[material]
-        lit = self.shader(world, normal, albedo, cameras.eye[fragments.batch],
-                          lights.position[fragments.batch], lights.intensity[fragments.batch],
-                          batch.ambient[material], batch.specular[material], batch.shininess[material])
+        # index_select: several times faster on the CPU than advanced indexing for these lookups.
+        by_material = lambda table: table.index_select(0, material)  # noqa: E731
+        by_image = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
+        albedo = albedo * by_material(batch.diffuse)
+        lit = self.shader(world, normal, albedo, by_image(cameras.eye), by_image(lights.position),
+                          by_image(lights.intensity), by_material(batch.ambient), by_material(batch.specular),
+                          by_material(batch.shininess))
         lit = lit.clamp(0.0, 1.0)
         background = torch.as_tensor(background, dtype=dtype, device=device).reshape(-1, 3).expand(n_batch, 3)
         color = scatter_to_image(lit, fragments, 0.0)
@@ -137,14 +140,11 @@ class MeshRenderer:
         from .splatter import splat
 
         # Splat positions: the surface point's screen position, barycentrics held fixed (see splatter).
-        corners = clip_to_screen(clip[fragments.batch.unsqueeze(1), fragments.vertex], height, width)
+        # (Background pixels have alpha 0 and splat nothing, so their positions are never read.)
+        corners = clip_to_screen(gather_corners(clip, fragments.batch, fragments.vertex), height, width)
         surface_xy = (corners * fragments.screen_bary.detach().unsqueeze(-1)).sum(1)
-        rows, cols = torch.meshgrid(torch.arange(height, device=device, dtype=dtype) + 0.5,
-                                    torch.arange(width, device=device, dtype=dtype) + 0.5, indexing="ij")
-        centres = torch.stack([cols, rows], dim=-1).reshape(1, height * width, 2).expand(n_batch, -1, -1)
-        splat_xy = scatter_to_image(surface_xy, fragments, 0.0).reshape(n_batch, height * width, 2)
-        splat_xy = torch.where((alpha.reshape(n_batch, -1, 1) > 0), splat_xy, centres)
-        image, coverage = splat(color, alpha, splat_xy.reshape(n_batch, height, width, 2), background, self.sigma)
+        splat_xy = scatter_to_image(surface_xy, fragments, 0.0)
+        image, coverage = splat(color, alpha, splat_xy, background, self.sigma)
         return RenderOutput(torch.cat([image, coverage.unsqueeze(-1)], dim=-1), fragments)
 
     def render(self, mesh: Mesh, cameras: Cameras, lights: PointLights, width: int, height: int,

@@ -1,0 +1,137 @@
+"""Networks, distortions, framing and weights I/O: shapes, bounds, gradients, any-size inputs."""
+
+import io
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from meshseal.distortions import Distortions2D, Distortions3D, jpeg, random_crop_faces, random_rotation
+from meshseal.errors import MeshsealError
+from meshseal.framing import boxes_from_mask, crop_boxes, object_mask
+from meshseal.models import ModelConfig, WatermarkModel
+from meshseal.models.io import load_model, save_model
+
+SMALL = dict(texture_channels=8, decoder_channels=8, vertex_width=8, texture_size=32, frame_size=32)
+
+
+@pytest.mark.parametrize("strategy", ["texture", "vertex", "vertex+texture"])
+@pytest.mark.parametrize("texture_encoder", ["hidden", "unet"])
+def test_embed_shapes_bounds_and_masking(strategy, texture_encoder):
+    torch.manual_seed(0)
+    model = WatermarkModel(ModelConfig(n_bits=8, strategy=strategy, texture_encoder=texture_encoder,
+                                       texture_tile=4 if texture_encoder == "hidden" else 0, **SMALL)).eval()
+    positions, normals = torch.rand(2, 50, 3), torch.nn.functional.normalize(torch.randn(2, 50, 3), dim=-1)
+    uvs, texture = torch.rand(2, 50, 2), torch.rand(2, 3, 32, 32)
+    mask = torch.ones(2, 50)
+    mask[1, 40:] = 0
+    message = torch.randint(0, 2, (2, 8)).float()
+    new_normals, new_uvs, new_texture = model.embed(positions, normals, uvs, texture, message, mask)
+    assert new_texture.shape == texture.shape and 0 <= float(new_texture.min()) and float(new_texture.max()) <= 1
+    assert torch.allclose(new_normals.norm(dim=-1), torch.ones(2, 50), atol=1e-5)
+    if "vertex" in strategy:
+        assert (new_uvs - uvs).abs().max() <= model.config.uv_strength + 1e-6
+        assert torch.equal(new_normals[1, 40:], normals[1, 40:])  # padded vertices untouched
+    else:
+        assert torch.equal(new_normals, normals) and torch.equal(new_uvs, uvs)
+    if "texture" in strategy:
+        assert (new_texture - texture).abs().max() <= model.config.texture_strength + 1e-6
+        assert not torch.equal(new_texture, texture)
+
+
+def test_texture_encoder_any_size_and_aspect():
+    model = WatermarkModel(ModelConfig(n_bits=8, texture_tile=4, texture_downsample=2, **SMALL)).eval()
+    for shape in ((1, 3, 32, 32), (1, 3, 77, 200), (1, 3, 512, 256)):
+        texture = torch.rand(*shape)
+        marked = model.texture_encoder(texture, torch.ones(1, 8))
+        assert marked.shape == texture.shape
+
+
+@pytest.mark.parametrize("decoder", ["hidden", "simple", "residual"])
+@pytest.mark.parametrize("stem", [1, 2, 4])
+def test_decoders_take_any_image_size(decoder, stem):
+    model = WatermarkModel(ModelConfig(n_bits=12, decoder=decoder, decoder_stem_stride=stem, **SMALL)).eval()
+    for size in ((32, 32), (57, 91), (128, 64)):
+        assert model.decode(torch.rand(2, 3, *size)).shape == (2, 12)
+
+
+def test_vertex_encoder_any_vertex_count_and_pooling_variants():
+    for encoder in ("pointnet", "pointnet2"):
+        model = WatermarkModel(ModelConfig(n_bits=4, strategy="vertex", vertex_encoder=encoder, **SMALL)).eval()
+        for n in (3, 1000):
+            normals, uvs = model.vertex_encoder(torch.rand(1, n, 3), torch.rand(1, n, 3), torch.rand(1, n, 2),
+                                                torch.ones(1, 4))
+            assert normals.shape == (1, n, 3) and uvs.shape == (1, n, 2)
+
+
+def test_bad_config_is_refused():
+    with pytest.raises(ValueError):
+        ModelConfig.from_dict({"n_bits": 8, "strategy": "everything"})
+    with pytest.raises(ValueError):
+        ModelConfig.from_dict({"no_such_setting": 1})
+
+
+def test_weights_round_trip_without_pickle(tmp_path):
+    model = WatermarkModel(ModelConfig(n_bits=8, **SMALL)).eval()
+    path = tmp_path / "m.safetensors"
+    save_model(model, path)
+    loaded = load_model(path)
+    image = torch.rand(1, 3, 32, 32)
+    assert torch.allclose(model.decode(image), loaded.decode(image))
+    (tmp_path / "bad.safetensors").write_bytes(b"not a model")
+    with pytest.raises(MeshsealError):
+        load_model(tmp_path / "bad.safetensors")
+    with pytest.raises(MeshsealError):
+        load_model(tmp_path / "missing.safetensors")
+
+
+def test_jpeg_approximation_is_close_to_real_jpeg_and_differentiable():
+    rng = np.random.default_rng(0)
+    smooth = np.clip(np.cumsum(np.cumsum(rng.normal(0, 0.02, (64, 64, 3)), 0), 1) + 0.5, 0, 1)
+    image = torch.tensor(smooth, dtype=torch.float32).permute(2, 0, 1)[None].requires_grad_()
+    approx = jpeg(image, 75)
+    buffer = io.BytesIO()
+    Image.fromarray((smooth * 255 + 0.5).astype(np.uint8)).save(buffer, "JPEG", quality=75, subsampling=0)
+    real = torch.tensor(np.asarray(Image.open(buffer)), dtype=torch.float32).permute(2, 0, 1)[None] / 255
+    mse = float(((approx - real) ** 2).mean())
+    assert 10 * np.log10(1 / mse) > 35
+    approx.sum().backward()
+    assert image.grad is not None and float(image.grad.abs().sum()) > 0
+
+
+def test_distortions_keep_shapes_and_gradients():
+    generator = torch.Generator().manual_seed(0)
+    image = torch.rand(2, 3, 40, 40, requires_grad=True)
+    attacks = Distortions2D(1.0)
+    for name in attacks.attacks:
+        out = attacks.apply(name, image, generator)
+        assert out.shape == image.shape
+        if name != "identity":
+            assert not torch.equal(out, image)
+    positions = torch.rand(2, 30, 3, requires_grad=True)
+    normals = torch.nn.functional.normalize(torch.randn(2, 30, 3), dim=-1)
+    faces = torch.randint(0, 30, (2, 40, 3))
+    rotated, turned = random_rotation(positions, normals, 1.0, generator)
+    assert torch.allclose(rotated.norm(dim=-1), positions.norm(dim=-1), atol=1e-5)
+    cropped = random_crop_faces(positions, faces, 1.0, generator)
+    removed = (cropped == 0).all(-1).float().mean()
+    assert float(removed) <= 0.25
+    p, n, f = Distortions3D(1.0, 1, 1, 1, 1)(positions, normals, faces, generator)
+    p.sum().backward()
+    assert positions.grad is not None
+
+
+def test_framing_finds_the_object_and_crops_square():
+    picture = np.full((200, 300, 3), 0.9, dtype=np.float32)
+    picture[50:110, 120:200] = 0.2
+    mask, background = object_mask(picture)
+    assert np.allclose(background, 0.9)
+    box = boxes_from_mask(torch.from_numpy(mask)[None])[0]
+    assert abs(float(box[0]) - 160) < 1.5 and abs(float(box[1]) - 80) < 1.5
+    framed = crop_boxes(torch.from_numpy(picture).permute(2, 0, 1)[None], box[None], 64,
+                        torch.tensor([[0.9, 0.9, 0.9]]))
+    assert framed.shape == (1, 3, 64, 64)
+    centre = framed[0, :, 28:36, 28:36]
+    assert torch.allclose(centre, torch.full_like(centre, 0.2), atol=1e-4)
+    assert torch.allclose(framed[0, :, 0, 0], torch.tensor([0.9, 0.9, 0.9]), atol=1e-4)

@@ -1,0 +1,133 @@
+"""Training, evaluation, the API and the model CLI end to end on a tiny dataset built from the fixtures."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from safetensors.torch import load_file
+
+import meshseal
+from meshseal.cli import main
+from meshseal.data.build import build
+from meshseal.train import TrainConfig, Trainer
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+TINY = {
+    "name": "tiny", "seed": 3,
+    "model": {"n_bits": 8, "strategy": "vertex+texture", "texture_channels": 8, "texture_blocks": 2,
+              "texture_downsample": 2, "texture_tile": 4, "texture_size": 32, "decoder_channels": 8,
+              "decoder_blocks": 4, "decoder_stem_stride": 2, "vertex_width": 8, "frame_size": 32},
+    "loss": {"reg": 0.0001},
+    "train": {"steps": 6, "pretrain_steps": 2, "batch_size": 2, "lr": 0.001, "render_size": 48,
+              "background": "random", "warmup_steps": 4, "target_slack": 5.0, "target_psnr": 40.0,
+              "target_psnr_texture": 30.0, "distortion_start": 3, "distortion_2d": 0.5, "retexture": 0.5,
+              "val_every": 3, "val_meshes": 2, "checkpoint_every": 3},
+}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("train")
+    src = root / "src"
+    src.mkdir()
+    for name in ("bunny.glb", "suzanne.glb", "multi_material.glb", "cube.off"):
+        shutil.copy(FIXTURES / name, src / name)
+    for name in ("teapot", "sh3d_crate"):
+        shutil.copytree(FIXTURES / name, src / name)
+    build(root / "data", sources=[], texture_sources=[], from_folder=src, textures_dir=FIXTURES / "textures",
+          seed=0, n_faces=400, texture_size=32, workers=1, license_="CC0-1.0", test_fraction=0.3)
+    return root / "data"
+
+
+def _config(data, **train):
+    values = json.loads(json.dumps(TINY))
+    values["data"] = str(data)
+    values["train"].update(train)
+    return TrainConfig.from_dict(values)
+
+
+def test_training_writes_logs_checkpoints_and_weights(dataset, tmp_path):
+    summary = Trainer(_config(dataset), tmp_path / "run", log=lambda *_: None).fit()
+    assert summary["steps"] == 6
+    for name in ("log.csv", "val.csv", "curves.png", "checkpoint.safetensors", "model.safetensors", "summary.json"):
+        assert (tmp_path / "run" / name).is_file(), name
+    rows = (tmp_path / "run" / "log.csv").read_text().splitlines()
+    assert len(rows) == 7 and rows[1].split(",")[1] == "1" and rows[-1].split(",")[1] == "2"
+    assert len((tmp_path / "run" / "val.csv").read_text().splitlines()) == 3  # steps 3 and 6
+
+
+def test_same_seed_same_numbers_and_resume_continues_exactly(dataset, tmp_path):
+    Trainer(_config(dataset), tmp_path / "a", log=lambda *_: None).fit()
+    Trainer(_config(dataset), tmp_path / "b", log=lambda *_: None).fit()
+    log = lambda run: [r.split(",")[:5] for r in (tmp_path / run / "log.csv").read_text().splitlines()]  # noqa: E731
+    assert log("a") == log("b")
+    Trainer(_config(dataset, steps=3), tmp_path / "c", log=lambda *_: None).fit()
+    Trainer(_config(dataset), tmp_path / "c", resume=True, log=lambda *_: None).fit()
+    first, resumed = load_file(str(tmp_path / "a" / "model.safetensors")), load_file(str(tmp_path / "c" / "model.safetensors"))
+    assert first.keys() == resumed.keys()
+    for key in first:
+        assert torch.allclose(first[key].float(), resumed[key].float(), atol=1e-6), key
+
+
+def test_bad_configs_are_clear_errors(tmp_path):
+    (tmp_path / "bad.yaml").write_text("model: {n_bits: 8}\ntrain: {no_such: 1}\n")
+    assert main(["train", "--config", str(tmp_path / "bad.yaml")]) == 2
+    (tmp_path / "broken.yaml").write_text("model: [\n")
+    assert main(["train", "--config", str(tmp_path / "broken.yaml")]) == 2
+    assert main(["train", "--config", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_cli_embed_render_detect_eval_round_trip(dataset, tmp_path, capsys):
+    Trainer(_config(dataset), tmp_path / "run", log=lambda *_: None).fit()
+    model = str(tmp_path / "run" / "model.safetensors")
+    capsys.readouterr()
+    bits = "10110010"
+    assert main(["embed", str(FIXTURES / "multi_material.glb"), "-o", str(tmp_path / "m.glb"),
+                 "--message", bits, "--model", model, "--json", "--views", "2"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    for key in ("psnr_texture", "normal_angle_deg", "uv_shift_texels", "psnr_render", "ssim_render"):
+        assert key in report
+    assert report["psnr_render"] > 20
+    marked = meshseal.load_mesh(tmp_path / "m.glb")
+    original = meshseal.load_mesh(FIXTURES / "multi_material.glb")
+    assert torch.equal(marked.positions, original.positions) and marked.n_faces == original.n_faces
+    assert main(["render", str(tmp_path / "m.glb"), "-o", str(tmp_path / "v.png"), "--width", "120",
+                 "--height", "90"]) == 0
+    capsys.readouterr()
+    assert main(["detect", str(tmp_path / "v.png"), "--model", model, "--json"]) == 0
+    result = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert len(result["bits"]) == 8 and set(result["bits"]) <= {"0", "1"} and 0.5 <= result["confidence"] <= 1
+    assert main(["eval", "--data", str(dataset), "--model", model, "--views", "2", "--json"]) == 0
+    metrics = json.loads(capsys.readouterr().out)
+    for key in ("bit_acc", "bit_acc_std", "psnr_render", "ssim_render", "psnr_texture", "l1_normal", "l1_uv",
+                "n_meshes", "n_views"):
+        assert key in metrics
+    assert metrics["n_views"] == 2 and 0 <= metrics["bit_acc"] <= 1
+    # Bad input: wrong message length, not bits, unreadable image, a mesh that can't carry the mark.
+    for argv in (["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--message", "101", "--model", model],
+                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--message", "abcdefgh", "--model", model],
+                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(FIXTURES / "bunny.glb"), "--message", bits, "--model", model],
+                 ["detect", str(FIXTURES / "LICENSES"), "--model", model],
+                 ["eval", "--data", str(tmp_path), "--model", model],
+                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--message", bits, "--model", "nope"]):
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("meshseal: error:") and "Traceback" not in err[0], argv
+
+
+def test_api_detect_accepts_arrays_any_size_and_alpha(dataset, tmp_path):
+    Trainer(_config(dataset), tmp_path / "run", log=lambda *_: None).fit()
+    wm = meshseal.load(str(tmp_path / "run" / "model.safetensors"))
+    assert wm.n_bits == 8
+    picture = np.zeros((300, 500, 4), dtype=np.uint8)
+    picture[100:200, 150:260] = (200, 120, 40, 255)
+    for image in (picture, picture[..., :3], Image.fromarray(picture), torch.from_numpy(picture[..., :3]).float() / 255):
+        result = wm.detect(image)
+        assert len(result.bits) == 8 and len(result.bit_confidence) == 8
+    assert isinstance(wm.detect([picture, picture]), list)
