@@ -68,6 +68,7 @@ class TrainSettings:
     checkpoint_every: int = 250
     time_limit_minutes: float | None = None
     retexture: float = 0.0
+    texture_kinds: list | None = None  # only items whose texture is of these kinds (own | real | noise)
 
 
 @dataclass
@@ -196,8 +197,10 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.train_set = CachedItems(MeshDataset(config.data, "train", retexture=config.train.retexture, seed=config.seed))
-        self.val_set = MeshDataset(config.data, "test", seed=config.seed)
+        kinds = config.train.texture_kinds
+        self.train_set = CachedItems(MeshDataset(config.data, "train", retexture=config.train.retexture,
+                                                 seed=config.seed, texture_kinds=kinds))
+        self.val_set = MeshDataset(config.data, "test", seed=config.seed, texture_kinds=kinds)
         if len(self.train_set) == 0:
             raise MeshsealError(f"{config.data}: the train split is empty")
         self.model = WatermarkModel(config.model).to(self.device)

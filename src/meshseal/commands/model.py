@@ -40,6 +40,8 @@ def register(subparsers) -> None:
     evaluate.add_argument("--size", type=positive_int(2048), default=128, help="render size (default 128)")
     evaluate.add_argument("--distortion-3d", type=float, default=0.0, help="3D distortion strength (0..1)")
     evaluate.add_argument("--distortion-2d", type=float, default=0.0, help="2D attack strength (0..1)")
+    evaluate.add_argument("--texture-kinds", default=None,
+                          help="only items with these texture kinds, comma-separated (own,real,noise)")
     evaluate.add_argument("--seed", type=int, default=0)
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(func=run_eval)
@@ -153,7 +155,8 @@ def run_eval(args) -> int:
     watermarker = load(args.model)
     if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
         raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest); build one with 'meshseal data build'")
-    dataset = MeshDataset(args.data, args.split, seed=args.seed)
+    kinds = args.texture_kinds.split(",") if args.texture_kinds else None
+    dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
     if len(dataset) == 0:
         raise MeshsealError(f"{args.data}: the {args.split} split is empty")
     metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, args.size, args.sampler,

@@ -30,7 +30,7 @@ class MeshDataset(torch.utils.data.Dataset):
     """
 
     def __init__(self, root, split: str = "train", retexture: float | bool = 0.0, p_noise: float = 0.5,
-                 seed: int = 0, categories=None):
+                 seed: int = 0, categories=None, texture_kinds=None):
         self.root = Path(root)
         if split not in SPLITS:
             raise DataError(f"unknown split '{split}' (one of {', '.join(SPLITS)})")
@@ -41,6 +41,8 @@ class MeshDataset(torch.utils.data.Dataset):
             rows = [r for r in rows if r["split"] == split]
         if categories:
             rows = [r for r in rows if r["category"] in set(categories)]
+        if texture_kinds:  # e.g. ("noise", "real"): the items with spherical UVs, as in the seed's ModelNet
+            rows = [r for r in rows if r.get("texture_kind") in set(texture_kinds)]
         self.rows = rows
         self.retexture = float(retexture)
         self.p_noise = float(p_noise)
