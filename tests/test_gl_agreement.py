@@ -28,7 +28,6 @@ ndimage = pytest.importorskip("scipy.ndimage")
 
 from meshseal.mesh import load, normalize, to_z_up  # noqa: E402
 from meshseal.render import MeshBatch, MeshRenderer, sample_seed_cameras, sample_seed_lights  # noqa: E402
-from meshseal.render.opengl import OpenGLRenderer  # noqa: E402
 
 from pathlib import Path  # noqa: E402
 
@@ -43,14 +42,8 @@ MAX_COVERAGE_DISAGREEMENT = 0.005
 
 
 @pytest.fixture(scope="module")
-def gl():
-    renderer = OpenGLRenderer()
-    try:
-        renderer.ctx
-    except RuntimeError as error:
-        pytest.skip(f"no headless EGL OpenGL context: {error}")
-    yield renderer
-    renderer.release()
+def gl(gl_renderer):
+    return gl_renderer
 
 
 @pytest.fixture(scope="module")

@@ -17,14 +17,8 @@ pytest.importorskip("moderngl", reason="moderngl is not installed (pip install m
 
 
 @pytest.fixture(scope="module")
-def renderer():
-    renderer = OpenGLRenderer()
-    try:
-        renderer.ctx
-    except RuntimeError as error:
-        pytest.skip(f"no headless EGL OpenGL context: {error}")
-    yield renderer
-    renderer.release()
+def renderer(gl_renderer):
+    return gl_renderer
 
 
 def quad(x0=-1.0, x1=1.0, y0=-1.0, y1=1.0, z=0.0):
