@@ -385,3 +385,10 @@ def test_vertex_normals_unit_length():
     twin = torch.cat([faces, faces.flip(-1)])
     normals = vertex_normals(positions, twin)
     assert torch.allclose(normals.abs(), torch.tensor([0.0, 0, 1]).expand(4, 3), atol=1e-6)
+
+
+def test_latin1_obj_with_non_utf8_material_name_loads(tmp_path):
+    (tmp_path / "m.mtl").write_bytes(b"newmtl caf\xe9\nKd 1 0 0\n")
+    (tmp_path / "latin.obj").write_bytes(b"mtllib m.mtl\nusemtl caf\xe9\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    mesh = load(tmp_path / "latin.obj")
+    assert mesh.n_faces == 1 and mesh.materials[0].name == "caf\u00e9"

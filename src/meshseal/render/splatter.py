@@ -130,42 +130,52 @@ def _accumulate_backward(color, alpha, xy, gauss, inv_var, grad_out, every_alpha
             grad_xy[b, i, j, 1] = gdy * inv_var * a
 
 
+# A pixel whose total splat weight is within FULL of one is fully covered. Interior pixels sum to one
+# only up to rounding; without the tolerance the branch (normalise vs. blend with the background), and
+# with it the gradient, would flip with the summation order.
+FULL = 1e-4
+
+
 @numba.njit(parallel=True, cache=True)
 def _composite_forward(accumulated, background, image, coverage):  # pragma: no cover - compiled
-    """image = acc[:C] / max(cov, 1) + (1 - min(cov, 1)) * background[b]; coverage = min(cov, 1)."""
+    """Fully covered (cov >= 1 - FULL): image = acc[:C] / cov, coverage 1.
+    Otherwise: image = acc[:C] + (1 - cov) * background[b], coverage cov."""
     n_batch, height, width, channels = image.shape
     for line in numba.prange(n_batch * height):
         b = line // height
         i = line - b * height
         for j in range(width):
             cov = accumulated[b, i, j, channels]
-            scale = 1.0 / max(cov, 1.0)
-            under = min(cov, 1.0)
-            for c in range(channels):
-                image[b, i, j, c] = accumulated[b, i, j, c] * scale + (1.0 - under) * background[b, c]
-            coverage[b, i, j] = under
+            if cov >= 1.0 - FULL:
+                for c in range(channels):
+                    image[b, i, j, c] = accumulated[b, i, j, c] / cov
+                coverage[b, i, j] = 1.0
+            else:
+                for c in range(channels):
+                    image[b, i, j, c] = accumulated[b, i, j, c] + (1.0 - cov) * background[b, c]
+                coverage[b, i, j] = cov
 
 
 @numba.njit(parallel=True, cache=True)
 def _composite_backward(accumulated, background, grad_image, grad_coverage, grad_accumulated):  # pragma: no cover
-    """Adjoint of _composite_forward w.r.t. acc, with torch's clamp subgradients (mask cov >= 1 for
-    max(cov, 1), cov <= 1 for min(cov, 1))."""
+    """Adjoint of _composite_forward w.r.t. acc."""
     n_batch, height, width, channels = grad_image.shape
     for line in numba.prange(n_batch * height):
         b = line // height
         i = line - b * height
         for j in range(width):
             cov = accumulated[b, i, j, channels]
-            big = max(cov, 1.0)
             grad_cov = 0.0
-            for c in range(channels):
-                g = grad_image[b, i, j, c]
-                grad_accumulated[b, i, j, c] = g / big
-                if cov >= 1.0:
-                    grad_cov -= g * accumulated[b, i, j, c] / (big * big)
-                if cov <= 1.0:
+            if cov >= 1.0 - FULL:
+                for c in range(channels):
+                    g = grad_image[b, i, j, c]
+                    grad_accumulated[b, i, j, c] = g / cov
+                    grad_cov -= g * accumulated[b, i, j, c] / (cov * cov)
+            else:
+                for c in range(channels):
+                    g = grad_image[b, i, j, c]
+                    grad_accumulated[b, i, j, c] = g
                     grad_cov -= g * background[b, c]
-            if cov <= 1.0:
                 grad_cov += grad_coverage[b, i, j]
             grad_accumulated[b, i, j, channels] = grad_cov
 
@@ -214,8 +224,9 @@ class _SplatCPU(torch.autograd.Function):
                              bool(ctx.needs_input_grad[1]), grad_color, grad_alpha, grad_xy)
         grad_background = None
         if ctx.needs_input_grad[3]:
-            coverage = torch.from_numpy(accumulated[..., -1:]).clamp(max=1.0)
-            grad_background = (torch.from_numpy(grad_image_np) * (1.0 - coverage)).sum((1, 2)).to(background.dtype)
+            coverage = torch.from_numpy(accumulated[..., -1:])
+            uncovered = torch.where(coverage >= 1.0 - FULL, 0.0, 1.0 - coverage)
+            grad_background = (torch.from_numpy(grad_image_np) * uncovered).sum((1, 2)).to(background.dtype)
         return (torch.from_numpy(grad_color), torch.from_numpy(grad_alpha).to(alpha.dtype),
                 torch.from_numpy(grad_xy).to(splat_xy.dtype), grad_background, None)
 
@@ -232,7 +243,9 @@ def splat(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor, back
     if color.device.type == "cpu" and color.dtype in (torch.float32, torch.float64):
         return _SplatCPU.apply(color, alpha, splat_xy, background.expand(n_batch, channels), sigma)
     accumulated = _accumulate_conv(color, alpha, splat_xy, sigma)
-    coverage = accumulated[..., -1]
-    image = accumulated[..., :-1] / coverage.clamp_min(1.0).unsqueeze(-1)
-    image = image + (1.0 - coverage.clamp(max=1.0)).unsqueeze(-1) * background.reshape(-1, 1, 1, channels)
-    return image, coverage.clamp(max=1.0)
+    coverage = accumulated[..., -1:]
+    full = coverage >= 1.0 - FULL
+    normalised = accumulated[..., :-1] / torch.where(full, coverage, torch.ones_like(coverage))
+    blended = accumulated[..., :-1] + (1.0 - coverage) * background.reshape(-1, 1, 1, channels)
+    image = torch.where(full, normalised, blended)
+    return image, torch.where(full, torch.ones_like(coverage), coverage).squeeze(-1)
