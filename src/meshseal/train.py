@@ -226,6 +226,13 @@ class Trainer:
                  "elapsed": self.elapsed, "position": list(self.position)}
         save_tensors(tensors, self.out / "checkpoint.safetensors", {"state": json.dumps(state),
                                                                      "config": json.dumps(self.config.to_dict())})
+        self._save_model()
+
+    def _save_model(self) -> None:
+        """The weights alone, usable by `meshseal eval/embed/detect --model` while training goes on."""
+        save_model(self.model, self.out / "model.safetensors",
+                   {"name": self.config.name, "steps": self.step, "seed": self.config.seed,
+                    "training_seconds": round(self.elapsed, 1), "train_config": self.config.to_dict()})
 
     def _restore(self) -> None:
         from safetensors import safe_open
@@ -372,9 +379,7 @@ class Trainer:
             if last:
                 break
         bar.close()
-        save_model(self.model, self.out / "model.safetensors",
-                   {"name": self.config.name, "steps": self.step, "seed": self.config.seed,
-                    "training_seconds": round(self.elapsed, 1), "train_config": self.config.to_dict()})
+        self._save_model()
         summary = {"steps": self.step, "elapsed_s": round(self.elapsed, 1), "stopped_by_time_limit": stopped_early}
         (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
         return summary
