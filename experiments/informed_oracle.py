@@ -6,7 +6,12 @@ takes the difference to the picture, un-renders the difference into the mesh's U
 pixel adds its colour to the texel under it) and decodes that map with a small position-aware CNN.
 Trained end to end with the texture encoder and the rendered-PSNR constraint of the main trainer.
 
-    python experiments/informed_oracle.py --bits 32 --steps 3000 --data data
+    python experiments/informed_oracle.py --bits 32 --steps 3000 --data data [--no-subtract]
+
+Measured on the 2-core machine (32 bits, tile 16, 2 threads, about 6 steps/s):
+- with subtraction: val bit accuracy 0.57 / 0.79 / 0.95 / 0.956 at steps 250 / 1000 / 1750 / 2750,
+  rendered PSNR 40.7 -> 46.0 dB;
+- without the carrier (--tile 0): 0.56-0.58 up to step 2000.
 
 Prints the validation bit accuracy and rendered PSNR every --every steps (test split, fixed views).
 """
@@ -68,6 +73,9 @@ def batches(dataset, size, generator):
             yield {k: torch.stack([it[k] for it in items]) for k in items[0] if torch.is_tensor(items[0][k])}
 
 
+SUBTRACT = True  # decode (picture - render of the original) rather than the picture itself
+
+
 def run(encoder, decoder, renderer, batch, message, generator, size):
     marked_texture = encoder(batch["texture"], message)
     cameras, lights = sample_views(len(message), "seed", generator)
@@ -76,7 +84,10 @@ def run(encoder, decoder, renderer, batch, message, generator, size):
     with torch.no_grad():
         original = renderer(MeshBatch.from_tensors(batch["positions"], batch["normals"], batch["uvs"], batch["faces"],
                                                    batch["texture"]), cameras, lights, size, size)
-    difference = (marked.rgba[..., :3] - original.rgba[..., :3]) * 10.0
+    if SUBTRACT:
+        difference = (marked.rgba[..., :3] - original.rgba[..., :3]) * 10.0
+    else:  # needs the mesh and the camera, not the original texture nor the lighting
+        difference = marked.rgba[..., :3] * 2.0 - 1.0
     logits = decoder(unrender(difference, marked.fragments, batch["uvs"]))
     return logits, marked.image, original.image, marked_texture
 
@@ -88,13 +99,18 @@ def main():
     parser.add_argument("--every", type=int, default=500)
     parser.add_argument("--data", default="data")
     parser.add_argument("--target-psnr", type=float, default=40.0)
+    parser.add_argument("--tile", type=int, default=16, help="periodic carrier period of the texture encoder (0: none)")
+    parser.add_argument("--no-subtract", action="store_true",
+                        help="decode the un-rendered picture itself, not its difference to the original's render")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    global SUBTRACT
+    SUBTRACT = not args.no_subtract
     torch.manual_seed(args.seed)
     generator = torch.Generator().manual_seed(args.seed)
     train = CachedItems(MeshDataset(args.data, "train", seed=args.seed))
     test = MeshDataset(args.data, "test", seed=args.seed)
-    encoder = HiddenTextureEncoder(args.bits, 32, 4, 128, 0.2, 2, tile=0)
+    encoder = HiddenTextureEncoder(args.bits, 32, 4, 128, 0.2, 2, tile=args.tile)
     decoder = UVDecoder(args.bits)
     renderer = MeshRenderer()
     optimizer = torch.optim.Adam(list(encoder.parameters()) + list(decoder.parameters()), lr=1e-3)
