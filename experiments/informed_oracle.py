@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from meshseal.data.dataset import MeshDataset
+from meshseal.data.dataset import MeshDataset, collate
 from meshseal.losses import bit_accuracy, message_loss, psnr
 from meshseal.models.blocks import ConvBNReLU
 from meshseal.models.texture_encoders import HiddenTextureEncoder
@@ -72,7 +72,7 @@ def batches(dataset, size, generator):
         for start in range(0, len(dataset) - size + 1, size):
             order = torch.randperm(len(dataset), generator=generator).tolist()[:size]
             items = [dataset[i] for i in order]
-            yield {k: torch.stack([it[k] for it in items]) for k in items[0] if torch.is_tensor(items[0][k])}
+            yield collate(items)
 
 
 SUBTRACT = True  # decode (picture - render of the original) rather than the picture itself
@@ -135,7 +135,7 @@ def main():
             with torch.no_grad():
                 for first in range(0, 64, 8):
                     items = [test[i] for i in range(first, first + 8)]
-                    tb = {k: torch.stack([it[k] for it in items]) for k in items[0] if torch.is_tensor(items[0][k])}
+                    tb = collate(items)
                     tm = torch.randint(0, 2, (8, args.bits), generator=check).float()
                     tl, mk, og, _ = run(encoder, decoder, renderer, tb, tm, check, 128)
                     accuracy.append(bit_accuracy(tl, tm))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
 from .models import WatermarkModel
@@ -28,13 +29,12 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
     for view in range(views):
         for start in range(0, count, batch_size):
             items = [dataset[i] for i in range(start, min(count, start + batch_size))]
-            batch = {k: torch.stack([item[k] for item in items]).to(device)
-                     for k in items[0] if torch.is_tensor(items[0][k])}
+            batch = collate(items, device)
             n = len(items)
             message = torch.randint(0, 2, (n, model.n_bits), generator=generator).float().to(device)
             out = run_pass(model, batch, message, renderer, generator, render_size, sampler,
                            distortions_3d, distortions_2d)
-            mask = (torch.arange(batch["positions"].shape[1], device=device)[None] < batch["n_verts"][:, None]).float()
+            mask = out.vertex_mask
             accuracies.append(bit_accuracy(out.logits, message))
             psnrs.append(psnr(out.render_marked, out.render))
             ssims.append(ssim(out.render_marked, out.render))

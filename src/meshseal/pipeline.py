@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .data.dataset import vertex_mask
 from .distortions import Distortions2D, Distortions3D
 from .framing import boxes_from_mask, crop_boxes
 from .models import WatermarkModel
@@ -26,6 +27,7 @@ class PassOutput:
     render: torch.Tensor  # (B, 3, H, W) original
     render_marked: torch.Tensor  # (B, 3, H, W) watermarked, before 2D distortions
     decoded_input: torch.Tensor  # (B, 3, S, S) what the decoder saw
+    vertex_mask: torch.Tensor | None  # (B, V) real vertices (None: no padding information)
 
 
 def sample_views(n: int, sampler: str, generator: torch.Generator):
@@ -56,10 +58,8 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
              background: torch.Tensor | None = None, render_original: bool = True) -> PassOutput:
     positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
     n = positions.shape[0]
-    vertex_mask = None
-    if "n_verts" in batch:
-        vertex_mask = (torch.arange(positions.shape[1], device=positions.device)[None] < batch["n_verts"][:, None]).float()
-    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, vertex_mask)
+    mask = vertex_mask(batch) if "n_verts" in batch else None
+    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, mask)
     cameras, lights = sample_views(n, sampler, generator)
     if background is None:
         background = torch.zeros(n, 3)
@@ -87,4 +87,4 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
         framed = distortions_2d(framed, generator)
     logits = model.decode(framed)
     return PassOutput(logits, message, texture, texture_marked, normals, normals_marked, uvs, uvs_marked,
-                      original_image, marked_image, framed)
+                      original_image, marked_image, framed, mask)

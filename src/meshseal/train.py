@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 import yaml
 
+from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .errors import MeshsealError
 from .losses import bit_accuracy, masked_l1, message_loss, psnr
@@ -264,8 +265,7 @@ class Trainer:
             for start in range(offset, len(order) - size + 1, size):
                 self.position = (epoch, start + size)
                 items = [self.train_set[i] for i in order[start:start + size]]
-                yield {key: torch.stack([item[key] for item in items]).to(self.device)
-                       for key in items[0] if torch.is_tensor(items[0][key])}
+                yield collate(items, self.device)
             self.position = (epoch + 1, 0)
 
     # -------------------------------------------------------- one step
@@ -310,7 +310,7 @@ class Trainer:
                            Distortions2D(cfg.distortion_2d) if distorting and cfg.distortion_2d > 0 else None,
                            background)
             logits = out.logits
-            mask = (torch.arange(batch["positions"].shape[1], device=self.device)[None] < batch["n_verts"][:, None]).float()
+            mask = out.vertex_mask
             vertex_term = (weights.normal_weight * masked_l1(out.normals_marked, out.normals, mask)
                            + weights.uv_weight * masked_l1(out.uvs_marked, out.uvs, mask))
             texture_term = (out.texture_marked - out.texture).abs().mean()

@@ -91,3 +91,15 @@ class MeshDataset(torch.utils.data.Dataset):
         item["texture"] = torch.from_numpy(np.array(texture, dtype=np.uint8)).permute(2, 0, 1).float() / 255.0
         item["id"] = row["id"]
         return item
+
+
+def collate(items: list[dict], device=None) -> dict:
+    """Stack the tensor fields of dataset items into a batch (string fields such as `id` are dropped)."""
+    return {key: torch.stack([item[key] for item in items]).to(device)
+            for key in items[0] if torch.is_tensor(items[0][key])}
+
+
+def vertex_mask(batch: dict) -> torch.Tensor:
+    """(B, Vmax) 1 for a mesh's real vertices, 0 for the padding."""
+    positions = batch["positions"]
+    return (torch.arange(positions.shape[1], device=positions.device)[None] < batch["n_verts"][:, None]).float()

@@ -3,7 +3,7 @@
 from ..errors import MeshError
 from .core import Material, Mesh
 from .io import load, save
-from .preprocess import ensure_uvs, normalize, simplify, spherical_uv, to_z_up, validate, vertex_normals
+from .preprocess import normalize, simplify, spherical_uv, to_z_up, vertex_normals
 
 __all__ = ["Mesh", "Material", "MeshError", "load", "save", "normalize", "simplify", "spherical_uv",
-           "ensure_uvs", "to_z_up", "validate", "vertex_normals"]
+           "to_z_up", "vertex_normals"]

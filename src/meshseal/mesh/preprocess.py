@@ -65,14 +65,6 @@ def spherical_uv(positions: torch.Tensor) -> torch.Tensor:
     return torch.stack([u, v], dim=-1)
 
 
-def ensure_uvs(mesh: Mesh) -> Mesh:
-    """Give a mesh without texture coordinates the spherical mapping of its normalised positions."""
-    if mesh.uvs is not None:
-        return mesh
-    centred = mesh.positions - (mesh.positions.min(0).values + mesh.positions.max(0).values) / 2
-    return replace(mesh, uvs=spherical_uv(to_z_up(replace(mesh, positions=centred)).positions))
-
-
 def simplify(mesh: Mesh, target_faces: int) -> Mesh:
     """Quadric-error simplification to about `target_faces` faces (fast-simplification).
 
@@ -105,13 +97,3 @@ def simplify(mesh: Mesh, target_faces: int) -> Mesh:
     face_material = torch.from_numpy(vertex_material[representative][np.asarray(new_faces)[:, 0]])
     return replace(mesh, positions=positions, normals=vertex_normals(positions, faces), faces=faces,
                    uvs=uvs, face_material=face_material, source=None)
-
-
-def validate(mesh: Mesh) -> None:
-    """Raise MeshError unless the mesh is renderable (finite values, faces in range)."""
-    if mesh.n_faces == 0:
-        raise MeshError("mesh has no faces")
-    if not torch.isfinite(mesh.positions).all():
-        raise MeshError("vertex positions contain NaN or infinity")
-    if int(mesh.faces.min()) < 0 or int(mesh.faces.max()) >= mesh.n_vertices:
-        raise MeshError("face indices out of range")

@@ -362,31 +362,39 @@ class OpenGLRenderer:
             owned += [ibo, vao]
             draws.append((vao, texture, material))
 
+        def draw(b: int) -> None:
+            for vao, texture, material in draws:
+                if material is None:
+                    self._set_material(**DEFAULT_MATERIAL)
+                else:
+                    self._set_material(material.ambient, material.diffuse, material.specular, material.shininess)
+                texture.use(0)
+                vao.render(moderngl.TRIANGLES)
+
         try:
-            per_chunk = self._tiles_per_chunk(width, height)
             self._set_constants()
             self._program["layer"].value = 0.0
-            results = []
-            for start in range(0, batch, per_chunk):
-                tiles = min(per_chunk, batch - start)
-                fbo = self._framebuffer(width, height, tiles)
-                self._begin(fbo, background)
-                for t in range(tiles):
-                    b = start + t
-                    fbo.viewport = (0, t * height, width, height)
-                    self._set_view(b, mvp, eye, light_pos, light_int, cameras.near)
-                    for vao, texture, material in draws:
-                        if material is None:
-                            self._set_material(**DEFAULT_MATERIAL)
-                        else:
-                            self._set_material(material.ambient, material.diffuse, material.specular,
-                                               material.shininess)
-                        texture.use(0)
-                        vao.render(moderngl.TRIANGLES)
-                results.append(self._readback(fbo, width, height, tiles))
+            return self._render_tiles(batch, width, height, background, mvp, eye, light_pos, light_int,
+                                      cameras.near, draw)
         finally:
             for obj in owned:
                 obj.release()
+
+    def _render_tiles(self, batch, width, height, background, mvp, eye, light_pos, light_int, near, draw):
+        """Draw each image into its own vertical tile of a shared framebuffer (`draw(b)` issues the draw
+        calls of image b), reading back one chunk of tiles at a time -> (B, H, W, 4)."""
+        per_chunk = self._tiles_per_chunk(width, height)
+        results = []
+        for start in range(0, batch, per_chunk):
+            tiles = min(per_chunk, batch - start)
+            fbo = self._framebuffer(width, height, tiles)
+            self._begin(fbo, background)
+            for t in range(tiles):
+                b = start + t
+                fbo.viewport = (0, t * height, width, height)
+                self._set_view(b, mvp, eye, light_pos, light_int, near)
+                draw(b)
+            results.append(self._readback(fbo, width, height, tiles))
         return torch.cat(results, 0) if len(results) > 1 else results[0]
 
     def render_batch(self, positions: torch.Tensor, normals: torch.Tensor, uvs: torch.Tensor,
@@ -459,22 +467,14 @@ class OpenGLRenderer:
         cache["texture"].write(texels.numpy())
         cache["texture"].use(0)
 
-        per_chunk = self._tiles_per_chunk(width, height)
+        def draw(b: int) -> None:
+            self._program["layer"].value = float(3 * b)
+            cache["vao"].render(moderngl.TRIANGLES, vertices=n_faces * 3, first=b * n_faces * 3)
+
         self._set_constants()
         self._set_material(**DEFAULT_MATERIAL)
-        results = []
-        for start in range(0, batch, per_chunk):
-            tiles = min(per_chunk, batch - start)
-            fbo = self._framebuffer(width, height, tiles)
-            self._begin(fbo, background)
-            for t in range(tiles):
-                b = start + t
-                fbo.viewport = (0, t * height, width, height)
-                self._set_view(b, mvp, eye, light_pos, light_int, cameras.near)
-                self._program["layer"].value = float(3 * b)
-                cache["vao"].render(moderngl.TRIANGLES, vertices=n_faces * 3, first=b * n_faces * 3)
-            results.append(self._readback(fbo, width, height, tiles))
-        return torch.cat(results, 0) if len(results) > 1 else results[0]
+        return self._render_tiles(batch, width, height, background, mvp, eye, light_pos, light_int,
+                                  cameras.near, draw)
 
 
 __all__ = ["OpenGLRenderer", "MAX_LIGHTS"]

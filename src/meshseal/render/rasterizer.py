@@ -67,7 +67,8 @@ class Fragments:
     pix_to_face: (B, H, W) long, the front-most face index (within its batch element) or -1.
     pixel: (P,) flat index into B*H*W of each foreground pixel; batch, face: (P,) long;
     bary: (P, 3) perspective-correct barycentrics (differentiable w.r.t. the clip-space vertices);
-    vertex: (P, 3) the face's vertex indices; screen_bary: (P, 3) screen-space barycentrics.
+    vertex: (P, 3) the face's vertex indices; screen_bary: (P, 3) screen-space barycentrics;
+    corners_xy: (P, 3, 2) the face's corners in pixels (differentiable; the splatter reuses them).
     """
 
     pix_to_face: torch.Tensor
@@ -77,6 +78,7 @@ class Fragments:
     vertex: torch.Tensor
     bary: torch.Tensor
     screen_bary: torch.Tensor
+    corners_xy: torch.Tensor
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -101,7 +103,7 @@ def gather_corners(values: torch.Tensor, batch: torch.Tensor, vertex: torch.Tens
     return values.reshape(-1, channels).index_select(0, index.reshape(-1)).reshape(*vertex.shape, channels)
 
 
-def _batched_faces(faces: torch.Tensor, n_batch: int) -> torch.Tensor:
+def _batched_faces(faces: torch.Tensor) -> torch.Tensor:
     return faces.unsqueeze(0) if faces.dim() == 2 else faces
 
 
@@ -113,7 +115,7 @@ def visible_faces(clip: torch.Tensor, faces: torch.Tensor, height: int, width: i
         xy = clip_to_screen(clip64, height, width).numpy()
         z = (clip64[..., 2] / clip64[..., 3]).numpy()
         w = clip64[..., 3].numpy()
-        face_array = _batched_faces(faces, clip.shape[0]).detach().to("cpu", torch.int64).numpy()
+        face_array = _batched_faces(faces).detach().to("cpu", torch.int64).numpy()
         n_batch = clip.shape[0]
         face_out = np.full((n_batch, height, width), -1, dtype=np.int64)
         depth = np.full((n_batch, height, width), np.inf, dtype=np.float64)
@@ -133,7 +135,7 @@ def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int) 
     within = pixel - batch * height * width
     row = torch.div(within, width, rounding_mode="floor")
     col = within - row * width
-    batched_faces = _batched_faces(faces, n_batch)
+    batched_faces = _batched_faces(faces)
     n_face_sets, n_faces = batched_faces.shape[0], batched_faces.shape[1]
     face_index = face if n_face_sets == 1 else batch * n_faces + face
     vertex = batched_faces.reshape(-1, 3).index_select(0, face_index)
@@ -149,4 +151,4 @@ def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int) 
     screen_bary = sub / sub.sum(dim=1, keepdim=True)
     perspective = screen_bary / corners[..., 3]
     bary = perspective / perspective.sum(dim=1, keepdim=True)
-    return Fragments(pix_to_face, pixel, batch, face, vertex, bary, screen_bary)
+    return Fragments(pix_to_face, pixel, batch, face, vertex, bary, screen_bary, xy)

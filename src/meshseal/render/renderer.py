@@ -11,7 +11,7 @@ from ..mesh.core import Mesh
 from .cameras import Cameras
 from .interpolate import interpolate, scatter_to_image
 from .lighting import PointLights
-from .rasterizer import Fragments, clip_to_screen, gather_corners, rasterize
+from .rasterizer import Fragments, rasterize
 from .shader import PhongShader
 from .texture import sample_textures
 
@@ -141,8 +141,7 @@ class MeshRenderer:
 
         # Splat positions: the surface point's screen position, barycentrics held fixed (see splatter).
         # (Background pixels have alpha 0 and splat nothing, so their positions are never read.)
-        corners = clip_to_screen(gather_corners(clip, fragments.batch, fragments.vertex), height, width)
-        surface_xy = (corners * fragments.screen_bary.detach().unsqueeze(-1)).sum(1)
+        surface_xy = (fragments.corners_xy * fragments.screen_bary.detach().unsqueeze(-1)).sum(1)
         splat_xy = scatter_to_image(surface_xy, fragments, 0.0)
         image, coverage = splat(color, alpha, splat_xy, background, self.sigma)
         return RenderOutput(torch.cat([image, coverage.unsqueeze(-1)], dim=-1), fragments)
