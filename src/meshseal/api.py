@@ -76,16 +76,26 @@ class Detection:
     bit_confidence: list[float]
     confidence: float
     box: tuple[float, float, float]
+    camera: str | None = None  # informed models: 'metadata' (the picture's own) or 'registered'
+    registration_iou: float | None = None  # silhouette overlap of the registered view
 
     def to_dict(self) -> dict:
-        return {"bits": self.bits, "confidence": round(self.confidence, 4),
-                "bit_confidence": [round(c, 4) for c in self.bit_confidence],
-                "box": [round(v, 1) for v in self.box]}
+        result = {"bits": self.bits, "confidence": round(self.confidence, 4),
+                  "bit_confidence": [round(c, 4) for c in self.bit_confidence],
+                  "box": [round(v, 1) for v in self.box]}
+        if self.camera is not None:
+            result["camera"] = self.camera
+        if self.registration_iou is not None:
+            result["registration_iou"] = round(self.registration_iou, 4)
+        return result
 
 
-def _load_image(image) -> tuple[np.ndarray, np.ndarray | None]:
-    """Path / PIL image / array / tensor -> (H, W, 3) float in [0, 1] and an alpha mask if it has one."""
+def _load_image(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """Path / PIL image / array / tensor -> (H, W, 3) float in [0, 1], an alpha mask if it has one, and
+    the camera metadata text if the picture carries one (see mesh.io.image_bytes)."""
     from PIL import Image, UnidentifiedImageError
+
+    from .mesh.io import CAMERA_KEY
 
     if isinstance(image, (str, Path)):
         path = Path(image)
@@ -101,7 +111,7 @@ def _load_image(image) -> tuple[np.ndarray, np.ndarray | None]:
         has_alpha = image.mode in ("RGBA", "LA") or (image.mode == "P" and "transparency" in image.info)
         rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
         alpha = rgba[..., 3] > 0.5 if has_alpha and rgba[..., 3].min() < 0.5 else None
-        return rgba[..., :3], alpha
+        return rgba[..., :3], alpha, image.info.get(CAMERA_KEY)
     if torch.is_tensor(image):
         image = image.detach().cpu().numpy()
         if image.ndim == 3 and image.shape[0] in (3, 4) and image.shape[-1] not in (3, 4):
@@ -111,7 +121,7 @@ def _load_image(image) -> tuple[np.ndarray, np.ndarray | None]:
         raise MeshsealError(f"expected an (H, W, 3) or (H, W, 4) image, got shape {array.shape}")
     array = array.astype(np.float32) / (255.0 if array.dtype == np.uint8 else 1.0)
     alpha = array[..., 3] > 0.5 if array.shape[-1] == 4 and array[..., 3].min() < 0.5 else None
-    return array[..., :3], alpha
+    return array[..., :3], alpha, None
 
 
 class Watermarker:
@@ -164,18 +174,44 @@ class Watermarker:
 
     # ------------------------------------------------------------ detect
     @torch.no_grad()
-    def detect(self, images) -> Detection | list[Detection]:
+    def detect(self, images, mesh=None, register: bool = False, fov_y: float = 60.0):
         """Read the message from one picture or a list of pictures (paths, PIL images, arrays, tensors).
 
-        The object is found (alpha channel, else the pixels that differ from the border colour), cropped
-        to a square around it and resized to the decoder's framing, so any resolution and framing work.
+        Blind models find the object (alpha channel, else the pixels that differ from the border
+        colour), crop a square around it and resize it to the decoder's framing, so any resolution and
+        framing work. Informed models (`informed`) also need the original `mesh` (a Mesh or a path):
+        they take the picture's camera from its metadata (pictures from `meshseal render`) or, when
+        it has none or `register` is set, find it by registration (assuming a vertical field of view
+        `fov_y`), then un-render the picture onto the mesh's texture space and decode there.
         """
+        original = self.original(mesh) if self.model.informed else None
         single = not isinstance(images, (list, tuple))
-        results = [self._detect_one(image) for image in ([images] if single else images)]
+        results = [self._detect_one(image, original, register, fov_y) for image in ([images] if single else images)]
         return results[0] if single else results
 
-    def _detect_one(self, image) -> Detection:
-        pixels, alpha = _load_image(image)
+    @property
+    def informed(self) -> bool:
+        """True when detection needs the original mesh."""
+        return self.model.informed
+
+    def original(self, mesh):
+        """The original mesh (a Mesh, a path, or an already prepared MeshBatch) in the canonical frame,
+        ready for informed detection; prepare it once to detect many pictures of it."""
+        from .mesh import load as load_mesh
+        from .render import MeshBatch
+
+        if isinstance(mesh, MeshBatch):
+            return mesh
+        if mesh is None:
+            raise MeshsealError("this model reads pictures with the original mesh: give it (--mesh FILE)")
+        if isinstance(mesh, (str, Path)):
+            mesh = load_mesh(mesh)
+        if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
+            raise MeshsealError("the original mesh has no texture with UVs, so it cannot carry this model's mark")
+        return MeshBatch.from_mesh(normalize(to_z_up(replace(mesh, source=None))).to(self.device))
+
+    def _detect_one(self, image, original, register: bool, fov_y: float) -> Detection:
+        pixels, alpha, camera_text = _load_image(image)
         if alpha is not None:
             mask, background = alpha, np.zeros(3, dtype=np.float32)
             pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
@@ -183,13 +219,36 @@ class Watermarker:
             mask, background = object_mask(pixels)
         box = boxes_from_mask(torch.from_numpy(mask)[None])
         tensor = torch.from_numpy(np.ascontiguousarray(pixels)).permute(2, 0, 1)[None].to(self.device)
-        framed = crop_boxes(tensor, box, self.model.config.frame_size,
-                            torch.tensor(background, dtype=tensor.dtype)[None].to(self.device))
-        logits = self.model.decode(framed.clamp(0, 1))[0].cpu()
+        background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)
+        source, iou = None, None
+        if original is None:
+            framed = crop_boxes(tensor, box, self.model.config.frame_size, background_tensor)
+            logits = self.model.decode(framed.clamp(0, 1))[0].cpu()
+        else:
+            from .mesh.io import camera_from_dict
+            from .pipeline import uv_maps
+
+            if camera_text is not None and not register:
+                import json
+
+                try:
+                    camera = camera_from_dict(json.loads(camera_text)).to(self.device)
+                except ValueError:
+                    raise MeshsealError("the picture's camera metadata is not valid JSON") from None
+                picture, source = tensor, "metadata"
+            else:
+                from .register import register as register_camera
+
+                with torch.enable_grad():
+                    found = register_camera(original, tensor[0], torch.from_numpy(mask).to(self.device),
+                                            background_tensor[0], size=256, fov_y=fov_y)
+                camera, picture, source, iou = found.camera, found.picture, "registered", found.iou
+            maps = uv_maps(original, picture.clamp(0, 1), camera, self.model.config.uv_grid)
+            logits = self.model.decode(maps)[0].cpu()
         confidence = torch.sigmoid(logits.abs())
         bits = "".join("1" if v > 0 else "0" for v in logits.tolist())
         return Detection(bits, logits.tolist(), confidence.tolist(), float(confidence.mean()),
-                         tuple(float(v) for v in box[0]))
+                         tuple(float(v) for v in box[0]), source, iou)
 
 
 def load(model: str | None = None, device: str | None = None) -> Watermarker:

@@ -18,7 +18,8 @@ from .render import MeshRenderer
 @torch.no_grad()
 def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views: int = 1, seed: int = 0,
              render_size: int = 128, sampler: str = "seed", batch_size: int = 8,
-             distortions_3d: Distortions3D | None = None, distortions_2d: Distortions2D | None = None) -> dict:
+             distortions_3d: Distortions3D | None = None, distortions_2d: Distortions2D | None = None,
+             unrender_jitter: float = 0.0) -> dict:
     was_training = model.training
     model.eval()
     generator = torch.Generator().manual_seed(seed + 1_000_003)
@@ -33,7 +34,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
             n = len(items)
             message = torch.randint(0, 2, (n, model.n_bits), generator=generator).float().to(device)
             out = run_pass(model, batch, message, renderer, generator, render_size, sampler,
-                           distortions_3d, distortions_2d)
+                           distortions_3d, distortions_2d, unrender_jitter=unrender_jitter)
             mask = out.vertex_mask
             accuracies.append(bit_accuracy(out.logits, message))
             psnrs.append(psnr(out.render_marked, out.render))

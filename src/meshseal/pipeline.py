@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -11,7 +12,9 @@ from .data.dataset import vertex_mask
 from .distortions import Distortions2D, Distortions3D
 from .framing import boxes_from_mask, crop_boxes
 from .models import WatermarkModel
-from .render import MeshBatch, MeshRenderer, sample_any_lights, sample_any_view_cameras, sample_seed_cameras, sample_seed_lights
+from .render import (Cameras, MeshBatch, MeshRenderer, lights_at, pixels_at, relight_fragments, sample_any_lights,
+                     sample_any_view_cameras, sample_seed_cameras, sample_seed_lights, surface_attributes, unrender)
+from .render.lighting import K_AMBIENT
 
 
 @dataclass
@@ -26,7 +29,7 @@ class PassOutput:
     uvs_marked: torch.Tensor
     render: torch.Tensor  # (B, 3, H, W) original
     render_marked: torch.Tensor  # (B, 3, H, W) watermarked, before 2D distortions
-    decoded_input: torch.Tensor  # (B, 3, S, S) what the decoder saw
+    decoded_input: torch.Tensor  # (B, 3, S, S) what the decoder saw (informed: UV maps (B, 10, G, G))
     vertex_mask: torch.Tensor | None  # (B, V) real vertices (None: no padding information)
 
 
@@ -52,10 +55,59 @@ def frame(image: torch.Tensor, alpha: torch.Tensor, size: int, background: torch
     return crop_boxes(image, boxes, size, background.to(image))
 
 
+def jitter_cameras(cameras: Cameras, pixels: float, size: int, generator: torch.Generator) -> Cameras:
+    """Move eye and look-at point by Gaussian noise worth about `pixels` pixels of a size x size
+    picture at the look-at distance: the pose error a registration leaves."""
+    if pixels <= 0:
+        return cameras
+    distance = (cameras.eye - cameras.at).norm(dim=-1, keepdim=True)
+    sigma = pixels * 2.0 * distance * math.tan(math.radians(cameras.fov_y) / 2) / size
+    shift = lambda: sigma * torch.randn(cameras.eye.shape, generator=generator).to(cameras.eye)  # noqa: E731
+    return replace(cameras, eye=cameras.eye + shift(), at=cameras.at + shift())
+
+
+def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, reference: torch.Tensor | None = None,
+            reference_mix: float = 0.0) -> torch.Tensor:
+    """What the informed decoder reads: the picture (B, 3, H, W) seen from `cameras`, un-rendered onto
+    the original mesh's UV grid -> (B, 10, grid, grid).
+
+    A point light is fitted to explain the picture from the original mesh (`relight_fragments`), the
+    original is rendered under it by our renderer, and the difference (x10) is mostly the watermark.
+    Channels: that residual (3), the picture (3), the original albedo (3), coverage (1). Silhouette
+    pixels (partly background) are left out. Training may blend in the exact `reference` (the original
+    rendered under the picture's own light) with weight `reference_mix`: a curriculum.
+    """
+    n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
+    with torch.no_grad():
+        unlit = replace(mesh, ambient=torch.full_like(mesh.ambient, 1.0 / K_AMBIENT))
+        flat = MeshRenderer()(unlit, cameras, lights_at(cameras.eye, 0.0), height, width)  # antialiased albedo
+        fragments = flat.fragments
+        uv, _ = surface_attributes(mesh, fragments)
+        albedo = pixels_at(flat.image, fragments)
+        _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo)
+        relit = replace(mesh, ambient=ambient if mesh.ambient.shape[0] == n_images else ambient.expand_as(mesh.ambient))
+        relit_render = MeshRenderer()(relit, cameras, lights, height, width)
+        inside = pixels_at(relit_render.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
+        keep = torch.nonzero(inside).squeeze(1)
+        expected = pixels_at(relit_render.image, fragments).index_select(0, keep).to(image)
+        if reference is not None and reference_mix > 0:
+            exact = pixels_at(reference, fragments).index_select(0, keep).to(image)
+            expected = reference_mix * exact + (1.0 - reference_mix) * expected
+        albedo = albedo.index_select(0, keep).to(image)
+        image_index, uv = fragments.batch.index_select(0, keep), uv.index_select(0, keep).to(image)
+    seen = pixels_at(image, fragments).index_select(0, keep)
+    values = torch.cat([10.0 * (seen - expected), seen, albedo], dim=1)
+    return unrender(values, uv, image_index, n_images, grid)
+
+
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,
              generator: torch.Generator, render_size: int = 128, sampler: str = "seed",
              distortions_3d: Distortions3D | None = None, distortions_2d: Distortions2D | None = None,
-             background: torch.Tensor | None = None, render_original: bool = True) -> PassOutput:
+             background: torch.Tensor | None = None, render_original: bool = True,
+             unrender_jitter: float = 0.0, reference_mix: float = 0.0) -> PassOutput:
+    """`unrender_jitter` (informed models): pose error in pixels of the camera used to un-render;
+    `reference_mix`: weight of the exact original render in what the un-rendering subtracts (see
+    `uv_maps`; 0 at evaluation and detection)."""
     positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
     n = positions.shape[0]
     mask = vertex_mask(batch) if "n_verts" in batch else None
@@ -66,6 +118,8 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
     background = background.to(positions)
     distorted_positions, distorted_normals, distorted_faces = positions, normals_marked, faces
     state = generator.get_state()
+    if distortions_3d is not None and model.informed:  # rigid moves are what registration recovers
+        distortions_3d = replace(distortions_3d, p_rotation=0.0, p_scaling=0.0)
     if distortions_3d is not None:
         distorted_positions, distorted_normals, distorted_faces = distortions_3d(positions, normals_marked, faces, generator)
     marked = renderer(MeshBatch.from_tensors(distorted_positions, distorted_normals, uvs_marked, distorted_faces,
@@ -82,9 +136,15 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
                                       render_size, render_size, background).image
         generator.set_state(after)
     marked_image = marked.image
-    framed = frame(marked_image, marked.rgba[..., 3], model.config.frame_size, background)
-    if distortions_2d is not None:
-        framed = distortions_2d(framed, generator)
+    if model.informed:
+        picture = marked_image if distortions_2d is None else distortions_2d(marked_image, generator)
+        original_mesh = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
+        framed = uv_maps(original_mesh, picture, jitter_cameras(cameras, unrender_jitter, render_size, generator),
+                         model.config.uv_grid, original_image, reference_mix)
+    else:
+        framed = frame(marked_image, marked.rgba[..., 3], model.config.frame_size, background)
+        if distortions_2d is not None:
+            framed = distortions_2d(framed, generator)
     logits = model.decode(framed)
     return PassOutput(logits, message, texture, texture_marked, normals, normals_marked, uvs, uvs_marked,
                       original_image, marked_image, framed, mask)

@@ -70,6 +70,8 @@ class TrainSettings:
     time_limit_minutes: float | None = None
     retexture: float = 0.0
     texture_kinds: list | None = None  # only items whose texture is of these kinds (own | real | noise)
+    unrender_jitter: float = 0.0  # informed models: pose error (pixels) of the un-rendering camera (ramps up over warmup_steps)
+    reference_steps: int = 0  # informed models: subtract the exact original render at first, fading out by this step
 
 
 @dataclass
@@ -205,6 +207,9 @@ class Trainer:
         if len(self.train_set) == 0:
             raise MeshsealError(f"{config.data}: the train split is empty")
         self.model = WatermarkModel(config.model).to(self.device)
+        if self.model.informed and config.train.pretrain_steps > 0:
+            raise MeshsealError("pretrain_steps must be 0 for an informed (uv) decoder: its input is a UV map, "
+                                "not a picture")
         self.parameters = list(self.model.parameters())
         # eta * sum(w^2) in the loss is exactly Adam's coupled weight decay 2 * eta.
         self.optimizer = torch.optim.Adam(self.parameters, lr=config.train.lr, weight_decay=2 * config.loss.reg)
@@ -273,6 +278,13 @@ class Trainer:
         warmup = self.config.train.warmup_steps
         return 1.0 if warmup <= 0 else min(1.0, self.step / warmup)
 
+    def _reference_mix(self) -> float:
+        """1 for the first half of `reference_steps`, then linearly down to 0 at `reference_steps`."""
+        total = self.config.train.reference_steps
+        if total <= 0:
+            return 0.0
+        return float(min(1.0, max(0.0, 2.0 * (1.0 - self.step / total))))
+
     def _dual(self, weight: float, target: float | None, measured: float) -> float:
         """Dual ascent on a PSNR constraint: raise the loss weight while below target, lower it above.
 
@@ -308,7 +320,8 @@ class Trainer:
             out = run_pass(self.model, batch, message, self.renderer, self.generator, cfg.render_size, cfg.sampler,
                            Distortions3D(cfg.distortion_3d) if distorting and cfg.distortion_3d > 0 else None,
                            Distortions2D(cfg.distortion_2d) if distorting and cfg.distortion_2d > 0 else None,
-                           background)
+                           background, unrender_jitter=cfg.unrender_jitter * ramp,
+                           reference_mix=self._reference_mix())
             logits = out.logits
             mask = out.vertex_mask
             vertex_term = (weights.normal_weight * masked_l1(out.normals_marked, out.normals, mask)
@@ -366,7 +379,8 @@ class Trainer:
                 stopped_early = last = True
             if self.step % cfg.val_every == 0 or last:
                 metrics = evaluate(self.model, self.val_set, n_meshes=cfg.val_meshes, views=1, seed=self.config.seed,
-                                   render_size=cfg.render_size, sampler=cfg.sampler, batch_size=cfg.batch_size)
+                                   render_size=cfg.render_size, sampler=cfg.sampler, batch_size=cfg.batch_size,
+                                   unrender_jitter=cfg.unrender_jitter)
                 with open(val_path, "a") as stream:
                     stream.write(f"{self.step},{metrics['bit_acc']:.4f},{metrics['psnr_render']:.3f},"
                                  f"{metrics['ssim_render']:.4f},{metrics['psnr_texture']:.3f},{self.elapsed:.1f}\n")

@@ -27,6 +27,12 @@ def register(subparsers) -> None:
                                    description="Decode each picture (any size, any plain background).")
     detect.add_argument("images", type=Path, nargs="+", help="image files (PNG, JPEG, ...)")
     detect.add_argument("--model", default=None, help="shipped model name or .safetensors path")
+    detect.add_argument("--mesh", type=Path, default=None,
+                        help="the original (unmarked) mesh file: informed models, like the default, need it")
+    detect.add_argument("--register", action="store_true",
+                        help="find the picture's camera by registration even if the picture carries one")
+    detect.add_argument("--fov", type=float, default=60.0,
+                        help="the picture's vertical field of view in degrees, for registration (default 60)")
     detect.add_argument("--json", action="store_true", help="one JSON object per image, one per line")
     detect.set_defaults(func=run_detect)
 
@@ -131,10 +137,17 @@ def run_detect(args) -> int:
     from ..api import load
 
     watermarker = load(args.model)
+    if not 1.0 <= args.fov <= 170.0:
+        raise MeshsealError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
+    original = None
+    if watermarker.informed:
+        if args.mesh is None:
+            raise MeshsealError(f"model '{watermarker.name}' reads pictures with the original mesh: add --mesh FILE")
+        original = watermarker.original(args.mesh)
     failed = 0
     for path in args.images:
         try:
-            result = watermarker.detect(path)
+            result = watermarker.detect(path, original, register=args.register, fov_y=args.fov)
         except MeshsealError as error:
             print(f"meshseal: error: {error}", file=sys.stderr)
             failed += 1
@@ -142,7 +155,10 @@ def run_detect(args) -> int:
         if args.json:
             print(json.dumps({"image": str(path)} | result.to_dict()))
         else:
-            print(f"{path}: {result.bits} (confidence {result.confidence:.3f})")
+            how = "" if result.camera is None else f", camera: {result.camera}"
+            if result.registration_iou is not None:
+                how += f" (silhouette IoU {result.registration_iou:.3f})"
+            print(f"{path}: {result.bits} (confidence {result.confidence:.3f}{how})")
     return 2 if failed else 0
 
 

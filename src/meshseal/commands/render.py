@@ -104,6 +104,6 @@ def run(args: argparse.Namespace) -> int:
                                    background=args.background)
             pixels = (rgba[..., :3].clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
             for k, image in zip(index, pixels):
-                atomic_write(paths[k], image_bytes(Image.fromarray(image, "RGB")))
+                atomic_write(paths[k], image_bytes(Image.fromarray(image, "RGB"), camera=cameras[k]))
                 print(paths[k])
     return 0

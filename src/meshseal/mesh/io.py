@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import io
+import json
 import os
 import re
 import sys
@@ -404,7 +405,43 @@ def _to_trimesh(mesh: Mesh):
                            vertex_normals=mesh.normals.detach().cpu().numpy(), visual=visual, process=False)
 
 
-def image_bytes(image: Image.Image, fmt: str = "PNG") -> bytes:
+CAMERA_KEY = "meshseal:camera"
+
+
+def image_bytes(image: Image.Image, fmt: str = "PNG", camera=None) -> bytes:
+    """Encode an image; a PNG may carry the camera that rendered it (one `Cameras` element, in the
+    canonical frame) as a text chunk, which informed detection uses instead of registering."""
     buffer = io.BytesIO()
-    image.save(buffer, format=fmt)
+    options = {}
+    if camera is not None and fmt == "PNG":
+        from PIL.PngImagePlugin import PngInfo
+
+        info = PngInfo()
+        info.add_text(CAMERA_KEY, json.dumps(camera_to_dict(camera)))
+        options["pnginfo"] = info
+    image.save(buffer, format=fmt, **options)
     return buffer.getvalue()
+
+
+def camera_to_dict(camera) -> dict:
+    return {"eye": camera.eye[0].tolist(), "at": camera.at[0].tolist(), "up": camera.up[0].tolist(),
+            "fov_y": camera.fov_y, "principal": list(camera.principal), "frame": "canonical"}
+
+
+def camera_from_dict(values: dict):
+    """The inverse of `camera_to_dict`; raises MeshError on anything malformed."""
+    import math
+
+    from ..render.cameras import Cameras
+
+    try:
+        eye, at, up = (torch.tensor([[float(v) for v in values[key]]]) for key in ("eye", "at", "up"))
+        fov = float(values["fov_y"])
+        principal = tuple(float(v) for v in values.get("principal", (0.0, 0.0)))
+        if eye.shape != (1, 3) or at.shape != (1, 3) or up.shape != (1, 3) or len(principal) != 2:
+            raise ValueError("bad shape")
+        if not (0.0 < fov < 180.0) or not all(math.isfinite(v) for v in eye.tolist()[0] + at.tolist()[0] + up.tolist()[0]):
+            raise ValueError("bad values")
+    except (KeyError, TypeError, ValueError) as error:
+        raise MeshError(f"malformed camera metadata ({error})") from None
+    return Cameras(eye, at, up, fov, principal=principal)

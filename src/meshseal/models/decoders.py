@@ -67,3 +67,26 @@ class ResidualCNNDecoder(nn.Module):
 
     def forward(self, image):
         return self.head(self.features(image).mean(dim=(2, 3)))
+
+
+class UVDecoder(nn.Module):
+    """Informed decoder: reads an un-rendered UV map (see pipeline.uv_maps), not a picture.
+
+    Input (B, 10, G, G): per UV cell, what the original texture under a fitted light leaves
+    unexplained in the picture (3), the picture (3), the original albedo (3) and the coverage (1). The
+    map is in absolute UV coordinates, so the head is position-aware (flatten + linear) and reads
+    where each bit's pattern sits.
+    """
+
+    def __init__(self, n_bits: int, channels: int = 32, grid: int = 64):
+        super().__init__()
+        if grid % 8:
+            raise ValueError("uv_grid must be a multiple of 8")
+        self.features = nn.Sequential(ConvBNReLU(10, channels), ConvBNReLU(channels, channels, stride=2),
+                                      ConvBNReLU(channels, channels, stride=2), ConvBNReLU(channels, channels, stride=2))
+        self.head = nn.Linear(channels * (grid // 8) ** 2, n_bits)
+
+    def forward(self, maps: torch.Tensor) -> torch.Tensor:
+        covered = maps[:, 9:10]
+        inputs = torch.cat([maps[:, :3], (2 * maps[:, 3:9] - 1) * covered, covered], dim=1)
+        return self.head(self.features(inputs).flatten(1))

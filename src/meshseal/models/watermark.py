@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, fields
 import torch
 from torch import nn
 
-from .decoders import HiddenDecoder, ResidualCNNDecoder, SimpleCNNDecoder
+from .decoders import HiddenDecoder, ResidualCNNDecoder, SimpleCNNDecoder, UVDecoder
 from .texture_encoders import HiddenTextureEncoder, UNetTextureEncoder
 from .vertex_encoders import PointNetVertexEncoder
 
@@ -32,12 +32,13 @@ class ModelConfig:
     vertex_width: int = 64
     normal_strength: float = 0.05
     uv_strength: float = 0.002
-    decoder: str = "hidden"  # hidden | simple | residual
+    decoder: str = "hidden"  # hidden | simple | residual (blind: read the picture) | uv (informed, see UVDecoder)
     decoder_channels: int = 64
     decoder_blocks: int = 7
     decoder_stem_stride: int = 1
     decoder_growth: int = 1
     frame_size: int = 128
+    uv_grid: int = 64  # informed decoder: cells per side of the un-rendered UV map
 
     @classmethod
     def from_dict(cls, values: dict) -> "ModelConfig":
@@ -83,6 +84,8 @@ class WatermarkModel(nn.Module):
             self.decoder = SimpleCNNDecoder(n, config.decoder_channels)
         elif config.decoder == "residual":
             self.decoder = ResidualCNNDecoder(n, config.decoder_channels)
+        elif config.decoder == "uv":
+            self.decoder = UVDecoder(n, config.decoder_channels, config.uv_grid)
         else:
             raise ValueError(f"unknown decoder '{config.decoder}'")
 
@@ -98,6 +101,11 @@ class WatermarkModel(nn.Module):
             texture = self.texture_encoder(texture, message)
         return normals, uvs, texture
 
+    @property
+    def informed(self) -> bool:
+        """True when detection needs the original mesh (the decoder reads un-rendered UV maps)."""
+        return self.config.decoder == "uv"
+
     def decode(self, image: torch.Tensor) -> torch.Tensor:
-        """Framed pictures (B, 3, S, S) in [0, 1] -> message logits (B, N)."""
-        return self.decoder(image * 2.0 - 1.0)
+        """Framed pictures (B, 3, S, S) in [0, 1] (or, informed, UV maps (B, 10, G, G)) -> logits (B, N)."""
+        return self.decoder(image if self.informed else image * 2.0 - 1.0)

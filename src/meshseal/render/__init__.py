@@ -4,7 +4,7 @@ Small composable primitives (like nvdiffrast's) laid out one file per stage (lik
 `MeshRenderer` that composes them. External renderers implement the same `Renderer` protocol.
 """
 
-from .cameras import Cameras, cameras_from_eyes, look_at, perspective, sample_any_view_cameras, sample_seed_cameras
+from .cameras import Cameras, cameras_from_eyes, fibonacci_directions, look_at, perspective, sample_any_view_cameras, sample_seed_cameras
 from .interpolate import interpolate, scatter_to_image
 from .lighting import PointLights, lights_at, sample_any_lights, sample_seed_lights
 from .rasterizer import Fragments, clip_to_screen, rasterize
@@ -12,9 +12,12 @@ from .renderer import MeshBatch, MeshRenderer, Renderer, RenderOutput
 from .shader import PhongShader
 from .splatter import splat
 from .texture import sample_texture, sample_textures
+from .relight import fit_point_light, relight_fragments
+from .unrender import facing_normals, pixels_at, surface_at_pixels, surface_attributes, unrender
 
-__all__ = ["Cameras", "cameras_from_eyes", "look_at", "perspective", "sample_any_view_cameras",
+__all__ = ["Cameras", "cameras_from_eyes", "fibonacci_directions", "look_at", "perspective", "sample_any_view_cameras",
            "sample_seed_cameras", "interpolate", "scatter_to_image", "PointLights", "lights_at",
            "sample_any_lights", "sample_seed_lights", "Fragments", "clip_to_screen", "rasterize", "MeshBatch",
            "MeshRenderer", "Renderer", "RenderOutput", "PhongShader", "splat", "sample_texture",
-           "sample_textures"]
+           "sample_textures", "facing_normals", "fit_point_light", "relight_fragments", "pixels_at", "surface_at_pixels", "surface_attributes",
+           "unrender"]

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 
 @dataclass
 class Cameras:
-    """A batch of pinhole cameras: eye, look-at point and up vector, each (B, 3)."""
+    """A batch of pinhole cameras: eye, look-at point and up vector, each (B, 3).
+
+    `principal` shifts the image centre by (x, y) in normalised device coordinates: the camera of a
+    crop of a picture, which registration (see `register`) uses.
+    """
 
     eye: torch.Tensor
     at: torch.Tensor
@@ -18,25 +22,27 @@ class Cameras:
     fov_y: float = 60.0
     near: float = 0.1
     far: float = 100.0
+    principal: tuple[float, float] = (0.0, 0.0)
 
     def __len__(self) -> int:
         return self.eye.shape[0]
 
     def to(self, device=None, dtype=None) -> "Cameras":
-        return Cameras(self.eye.to(device, dtype), self.at.to(device, dtype), self.up.to(device, dtype),
-                       self.fov_y, self.near, self.far)
+        return replace(self, eye=self.eye.to(device, dtype), at=self.at.to(device, dtype), up=self.up.to(device, dtype))
 
     def __getitem__(self, index) -> "Cameras":
         index = [index] if isinstance(index, int) else index
-        return Cameras(self.eye[index], self.at[index], self.up[index], self.fov_y, self.near, self.far)
+        return replace(self, eye=self.eye[index], at=self.at[index], up=self.up[index])
 
     def view_matrix(self) -> torch.Tensor:
         """World -> view (B, 4, 4); the camera looks down its -Z axis."""
         return look_at(self.eye, self.at, self.up)
 
     def projection_matrix(self, aspect: float) -> torch.Tensor:
-        """View -> clip (4, 4), gluPerspective."""
-        return perspective(self.fov_y, aspect, self.near, self.far, self.eye.dtype, self.eye.device)
+        """View -> clip (4, 4), gluPerspective (with the principal point shift)."""
+        matrix = perspective(self.fov_y, aspect, self.near, self.far, self.eye.dtype, self.eye.device)
+        matrix[0, 2], matrix[1, 2] = -self.principal[0], -self.principal[1]
+        return matrix
 
     def world_to_clip(self, points: torch.Tensor, aspect: float) -> torch.Tensor:
         """(B, N, 3) world points -> (B, N, 4) clip coordinates."""
@@ -66,6 +72,15 @@ def perspective(fov_y: float, aspect: float, near: float, far: float, dtype=torc
     matrix[2, 3] = 2.0 * far * near / (near - far)
     matrix[3, 2] = -1.0
     return matrix
+
+
+def fibonacci_directions(n: int) -> torch.Tensor:
+    """n nearly uniform unit vectors on the sphere (n, 3)."""
+    index = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * index / n
+    radius = torch.sqrt(1.0 - z * z)
+    angle = math.pi * (3.0 - math.sqrt(5.0)) * index
+    return torch.stack([radius * torch.cos(angle), radius * torch.sin(angle), z], dim=-1).float()
 
 
 def _batch(vector, n: int, dtype=torch.float32, device=None) -> torch.Tensor:

@@ -1,0 +1,203 @@
+"""Camera registration: find the view of a picture of a known mesh, by analysis by synthesis.
+
+Informed detection un-renders a picture onto the original mesh, so it needs the picture's camera. The
+picture is cropped to the object's square box (as `framing` does); candidate views from all around the
+mesh are rendered, framed the same way and scored by silhouette overlap and by how well the picture's
+colours fit the mesh's texture under the best-fitting simple lighting; the best few are refined by
+gradient descent on the same two terms through the differentiable renderer, and the best one wins. The camera returned
+renders the *cropped* picture, at any resolution.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+import torch.nn.functional as F
+
+from .framing import boxes_from_mask, crop_boxes
+from .render import Cameras, MeshBatch, MeshRenderer, fibonacci_directions, lights_at, pixels_at, relight_fragments
+
+SEARCH_SIZE = 128  # render size of the candidate views and of the refinement
+COMPARE_SIZE = 64  # framed size at which candidates are scored
+DISTANCE = 3.5
+FOV = 60.0
+
+
+@dataclass
+class Registration:
+    """camera: one camera for the framed picture; picture (1, 3, S, S) and mask (1, S, S) framed at the
+    requested size; box: the square box (cx, cy, half) in the original picture's pixels; iou: overlap
+    of the registered silhouette with the picture's."""
+
+    camera: Cameras
+    picture: torch.Tensor
+    mask: torch.Tensor
+    box: torch.Tensor
+    iou: float
+
+
+def _up_for(direction: torch.Tensor) -> torch.Tensor:
+    """+Z up, except looking straight down or up, where +Y is used."""
+    up = torch.zeros_like(direction)
+    vertical = direction[:, 2].abs() > 0.98
+    up[:, 2] = (~vertical).float()
+    up[:, 1] = vertical.float()
+    return up
+
+
+def _iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    a, b = a > 0.5, b > 0.5
+    return (a & b).sum(dim=(-2, -1)).float() / (a | b).sum(dim=(-2, -1)).clamp_min(1).float()
+
+
+def crop_intrinsics(height: int, width: int, box, fov_y: float) -> tuple[float, tuple[float, float]]:
+    """(fov_y, principal) of the camera that sees the square `box` (cx, cy, half) cropped out of a
+    height x width picture taken with vertical field of view `fov_y` (centred principal point)."""
+    cx, cy, half = (float(v) for v in box)
+    tan = math.tan(math.radians(fov_y) / 2) * 2 * half / height
+    return math.degrees(2 * math.atan(tan)), ((width / 2 - cx) / half, (cy - height / 2) / half)
+
+
+def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 2) -> Cameras:
+    """Move each camera (without turning it) so the object's framed box fills its size x size picture."""
+    focal = size / 2 / math.tan(math.radians(cameras.fov_y) / 2)
+    for _ in range(rounds):
+        with torch.no_grad():
+            alpha = MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size).rgba[..., 3]
+        boxes = boxes_from_mask(alpha.cpu() > 0.5).to(cameras.eye)
+        view = cameras.view_matrix()[:, :3, :3]  # rows: right, up, back
+        distance = (cameras.at - cameras.eye).norm(dim=-1, keepdim=True)
+        dx = (size / 2 - boxes[:, :1]) * distance / focal  # object right by dx px: camera left
+        dy = (size / 2 - boxes[:, 1:2]) * distance / focal  # object down (pixel rows): camera up
+        shift = -dx * view[:, 0] + dy * view[:, 1]
+        closer = (1.0 - boxes[:, 2:] / (size / 2)) * distance * -view[:, 2]  # toward the object
+        cameras = replace(cameras, eye=cameras.eye + shift + closer, at=cameras.at + shift)
+    return cameras
+
+
+def frame_picture(picture: torch.Tensor, mask: torch.Tensor, size: int, background: torch.Tensor):
+    """picture (3, H, W), mask (H, W) bool -> framed picture (1, 3, S, S), mask (1, S, S), box (1, 3)."""
+    box = boxes_from_mask(mask[None].cpu())
+    framed = crop_boxes(picture[None], box, size, background.reshape(1, 3).to(picture))
+    framed_mask = crop_boxes(mask[None, None].to(picture.dtype), box, size)[:, 0]
+    return framed, framed_mask, box
+
+
+def _targets(target: torch.Tensor, target_mask: torch.Tensor) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """The framed picture (1, 3, S, S) and its mask (1, 1, S, S) at the two working sizes."""
+    levels = {}
+    for size in (COMPARE_SIZE, SEARCH_SIZE):
+        levels[size] = (F.interpolate(target, size=size, mode="area"),
+                        F.interpolate(target_mask[:, None], size=size, mode="area"))
+    return levels
+
+
+def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(silhouette IoU - weighted shading misfit, IoU), each (B,), of cameras against the picture."""
+    target, target_mask = level
+    size = target_mask.shape[-1]
+    with torch.no_grad():
+        out = MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size)
+        iou = _iou(out.rgba[..., 3], target_mask[:, 0])
+        return iou - shading_weight * _shading_misfit(mesh, out.fragments, cameras, target, target_mask), iou
+
+
+def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.Tensor,
+                    target_mask: torch.Tensor) -> torch.Tensor:
+    """How badly the picture's colours fit the mesh's texture under the best-fitting point light
+    (`relight_fragments`), relative to their variance, per image (B,). Differentiable w.r.t. the
+    camera through the texture lookup."""
+    n_batch = fragments.shape[0]
+    seen = pixels_at(target.expand(n_batch, -1, -1, -1), fragments)
+    inside = (pixels_at(target_mask.expand(n_batch, -1, -1, -1), fragments)[:, 0] > 0.5).to(seen.dtype)
+    predicted, _, _ = relight_fragments(mesh, fragments, cameras, seen)
+    error = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - predicted) ** 2).mean(1) * inside)
+    count = seen.new_zeros(n_batch).index_add(0, fragments.batch, inside)
+    variance = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - seen.mean(0)) ** 2).mean(1) * inside)
+    return torch.where(count >= 16, error / variance.clamp_min(1e-4), torch.ones_like(error))
+
+
+def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
+    """`start` (one camera) moved by `delta` (6,), in pixel-sized units of a size x size picture: a
+    rotation (x, y, z) whose x and y turn the view by that many pixels at the centre, a translation
+    (x, y) shifting the object by that many pixels and a move along the view axis growing it by that
+    many pixels at its edge. Well-conditioned coordinates for the optimizer."""
+    focal = size / 2 / math.tan(math.radians(start.fov_y) / 2)
+    distance = (start.at - start.eye).norm()
+    omega = torch.stack([-delta[1], delta[0], delta[2] * 2 / size]) / focal * torch.tensor([1.0, 1.0, focal])
+    skew = torch.zeros(3, 3, dtype=delta.dtype)
+    skew[0, 1], skew[0, 2], skew[1, 2] = -omega[2], omega[1], -omega[0]
+    rotation = torch.linalg.matrix_exp(skew - skew.T)
+    translation = torch.stack([delta[3] * distance / focal, -delta[4] * distance / focal,
+                               delta[5] * distance * 2 / size])
+    view = start.view_matrix()[0]
+    rotation_world = rotation @ view[:3, :3]
+    translation_world = rotation @ view[:3, 3] + translation
+    eye = -(rotation_world.T @ translation_world)
+    forward = -rotation_world[2]
+    return replace(start, eye=eye[None], at=(eye + distance * forward)[None], up=rotation_world[1][None])
+
+
+def _refine(mesh: MeshBatch, start: Cameras, level, sigma: float, steps: int, shading_weight: float,
+            lr: float) -> Cameras:
+    """Adam on a rigid move of the camera (`_moved`): silhouette L2 (both blurred by `sigma` pixels)
+    plus the weighted shading misfit, through the differentiable renderer."""
+    from .distortions import gaussian_blur
+
+    target, target_mask = level
+    size = target_mask.shape[-1]
+    blurred_target = gaussian_blur(target_mask, sigma)
+    renderer = MeshRenderer()
+    delta = torch.zeros(6, requires_grad=True)
+    optimizer = torch.optim.Adam([delta], lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
+    for _ in range(steps):
+        camera = _moved(start, delta, size)
+        out = renderer(mesh, camera, lights_at(camera.eye.detach()), size, size)
+        cover = out.rgba[..., 3].unsqueeze(1)
+        loss = ((gaussian_blur(cover, sigma) - blurred_target) ** 2).mean() * (1 + sigma) ** 2
+        if shading_weight > 0:
+            loss = loss + shading_weight * _shading_misfit(mesh, out.fragments, camera, target, target_mask).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+    with torch.no_grad():
+        return _moved(start, delta.detach(), size)
+
+
+def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, background: torch.Tensor,
+             size: int = 256, candidates: int = 400, keep: int = 4, steps: int = 30,
+             shading_weight: float = 0.3, lr: float = 0.5, fov_y: float = FOV) -> Registration:
+    """Find the camera of `picture` (3, H, W) in [0, 1] of `mesh` (one mesh in the canonical frame);
+    `mask` (H, W) marks the object's pixels; `fov_y` is the picture's vertical field of view (its
+    principal point is assumed at its centre). See the module docstring."""
+    target, target_mask, box = frame_picture(picture, mask, SEARCH_SIZE, background)
+    levels = _targets(target, target_mask)
+    fov, principal = crop_intrinsics(picture.shape[-2], picture.shape[-1], box[0], fov_y)
+
+    # 1. Candidate views all around, moved so the object fills the crop as in the picture, and scored.
+    directions = fibonacci_directions(candidates)
+    search = Cameras(DISTANCE * directions, torch.zeros_like(directions), _up_for(directions), fov,
+                     principal=principal)
+    search = _center_objects(mesh, search, COMPARE_SIZE)
+    scores = torch.cat([_scores(mesh, search[list(range(first, min(candidates, first + 32)))], levels[COMPARE_SIZE],
+                                shading_weight)[0] for first in range(0, candidates, 32)])
+    best = scores.topk(min(keep, candidates)).indices.tolist()
+
+    # 2. Refine the best few coarsely, then the best of them finely (blurred silhouettes first: their
+    # gradients reach further than the one-pixel band of the splat's).
+    refined = []
+    for index in best:
+        camera = search[[index]]
+        for sigma in (3.0, 1.5):
+            camera = _refine(mesh, camera, levels[COMPARE_SIZE], sigma, steps, shading_weight, lr)
+        refined.append(camera)
+    camera = max(refined, key=lambda c: float(_scores(mesh, c, levels[COMPARE_SIZE], shading_weight)[0][0]))
+    for sigma in (1.0, 0.0):
+        camera = _refine(mesh, camera, levels[SEARCH_SIZE], sigma, steps, shading_weight, lr)
+    iou = float(_scores(mesh, camera, levels[SEARCH_SIZE], shading_weight)[1][0])
+    framed_picture, framed_mask, _ = frame_picture(picture, mask, size, background)
+    return Registration(camera, framed_picture, framed_mask, box[0], iou)

@@ -1,0 +1,90 @@
+"""Estimate a picture's lighting from the mesh it shows, so the original can be rendered as it would
+look in that picture (informed detection subtracts it to isolate the watermark)."""
+
+from __future__ import annotations
+
+import torch
+
+from .cameras import fibonacci_directions
+from .lighting import ATTENUATION, K_AMBIENT, K_DIFFUSE, PointLights
+
+LIGHT_DISTANCES = (2.0, 3.0, 4.5, 7.0, 12.0)
+
+
+def fit_point_light(seen: torch.Tensor, albedo: torch.Tensor, position: torch.Tensor, normal: torch.Tensor,
+                    image_index: torch.Tensor, n_images: int, directions: int = 96, max_pixels: int = 512):
+    """Explain observed colours (P, 3) as albedo (P, 3) under an ambient term plus one point light (our
+    Phong model, attenuation included), per image of `image_index` (P,).
+
+    The light's position is the best of `directions` x LIGHT_DISTANCES around the origin; for each,
+    the per-channel ambient and light strengths are a closed-form least-squares fit. `position`,
+    `normal` (P, 3): surface points and normals facing the camera. Returns the shader's parameters:
+    ambient factor (n_images, 3) for the materials' Ka, and PointLights (one light per image). Images
+    with too few pixels get a plain ambient light.
+    """
+    with torch.no_grad():
+        seen, albedo = seen.detach(), albedo.detach()
+        unit = fibonacci_directions(directions).to(seen)
+        grid = torch.cat([unit * d for d in LIGHT_DISTANCES])  # (K, 3)
+        ring = fibonacci_directions(32).to(seen)
+        ambient = seen.new_ones(n_images, 3) / K_AMBIENT
+        light_position = seen.new_zeros(n_images, 1, 3)
+        intensity = seen.new_zeros(n_images, 1, 3)
+        for index in range(n_images):
+            chosen = torch.nonzero(image_index == index).squeeze(1)
+            if len(chosen) < 16:
+                continue
+            chosen = chosen[:: max(1, len(chosen) // max_pixels)]  # an even subsample is plenty for 7 numbers
+            y, u = seen.index_select(0, chosen), albedo.index_select(0, chosen)
+            p, n = position.index_select(0, chosen), normal.index_select(0, chosen)
+            best = _best_light(y, u, p, n, grid)
+            for step in (0.3, 0.1, 0.03):  # then search ever closer around the best
+                centre = best[2]
+                best = min(best, _best_light(y, u, p, n, centre + step * centre.norm() * ring), key=lambda b: b[0])
+            _, a, centre, d = best
+            ambient[index], light_position[index, 0], intensity[index, 0] = a / K_AMBIENT, centre, d / K_DIFFUSE
+        return ambient, PointLights(light_position, intensity)
+
+
+def _best_light(y, u, position, normal, candidates):
+    """Least-squares fit of y ~ a * u + d * u * lambert(candidate) per channel for each candidate light
+    position (K, 3); returns (residual, a (3,), position (3,), d (3,)) of the best one."""
+    kc, kl, kq = ATTENUATION
+    to_light = candidates.unsqueeze(0) - position.unsqueeze(1)  # (P, K, 3)
+    distance = to_light.norm(dim=-1).clamp_min(1e-6)
+    cosine = (to_light * normal.unsqueeze(1)).sum(-1) / distance
+    lit = cosine.clamp_min(0.0) / (kc + kl * distance + kq * distance * distance)  # (P, K)
+    v = u.unsqueeze(1) * lit.unsqueeze(-1)  # (P, K, 3)
+    suu, suy = (u * u).sum(0), (u * y).sum(0)
+    suv, svv, svy = (u.unsqueeze(1) * v).sum(0), (v * v).sum(0), (v * y.unsqueeze(1)).sum(0)
+    det = (suu * svv - suv * suv).clamp_min(1e-9)
+    a = ((svv * suy - suv * svy) / det).clamp_min(0.0)
+    d = ((suu * svy - suv * suy) / det).clamp_min(0.0)
+    residual = ((y * y).sum(0) - 2 * (a * suy + d * svy) + a * a * suu + 2 * a * d * suv + d * d * svv).sum(-1)
+    best = int(residual.argmin())
+    return float(residual[best]), a[best], candidates[best], d[best]
+
+
+def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: torch.Tensor | None = None):
+    """Fit a point light to the observed colours `seen` (P, 3) at `fragments` of `batch` (a MeshBatch
+    with uvs) seen from `cameras`; returns the colours our shader predicts there (P, 3), differentiable
+    w.r.t. the camera through the texture lookup (the light is held fixed), and the fit itself
+    (ambient factors (B, 3), PointLights). `albedo` (P, 3) replaces the texture looked up at the pixel
+    centres (e.g. an antialiased unlit render, to match an antialiased picture)."""
+    from .interpolate import interpolate
+    from .shader import PhongShader
+    from .unrender import facing_normals, surface_attributes
+
+    n_images = fragments.shape[0]
+    if albedo is None:
+        _, albedo = surface_attributes(batch, fragments)
+    positions = batch.positions.expand(n_images, -1, -1) if batch.positions.shape[0] == 1 else batch.positions
+    with torch.no_grad():
+        position = interpolate(positions, fragments)
+        normal = facing_normals(batch, fragments, cameras)
+    ambient, lights = fit_point_light(seen, albedo, position, normal, fragments.batch, n_images)
+    pick = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
+    eye = cameras.eye.to(position).detach()
+    predicted = PhongShader()(position, normal, albedo, pick(eye), pick(lights.position), pick(lights.intensity),
+                              pick(ambient), torch.zeros_like(albedo), albedo.new_full((len(albedo),), 32.0))
+    return predicted.clamp(0.0, 1.0), ambient, lights

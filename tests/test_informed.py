@@ -1,0 +1,165 @@
+"""Informed detection: crop cameras, lighting fits, un-rendering, registration, camera metadata, and the
+CLI round trip embed -> render -> detect --mesh with a tiny informed model."""
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+from PIL import Image
+
+from meshseal.cli import main
+from meshseal.errors import MeshsealError
+from meshseal.framing import boxes_from_mask, crop_boxes
+from meshseal.mesh import load, normalize, to_z_up
+from meshseal.mesh.io import camera_from_dict, camera_to_dict
+from meshseal.pipeline import uv_maps
+from meshseal.register import crop_intrinsics, register
+from meshseal.render import (MeshBatch, MeshRenderer, pixels_at, relight_fragments, sample_any_lights,
+                             sample_any_view_cameras, surface_at_pixels, unrender)
+from meshseal.train import TrainConfig, Trainer
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+def _bunny():
+    return MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "bunny.glb"))))
+
+
+def _view(seed=3, index=1):
+    generator = torch.Generator().manual_seed(seed)
+    cameras, lights = sample_any_view_cameras(3, generator), sample_any_lights(3, generator)
+    return cameras[[index]], lights[[index]]
+
+
+def _iou(a, b):
+    return float((a & b).sum()) / float((a | b).sum())
+
+
+def test_crop_camera_sees_exactly_the_crop():
+    mesh, (camera, lights) = _bunny(), _view()
+    full = MeshRenderer(blend="hard")(mesh, camera, lights, 240, 320)
+    box = boxes_from_mask(full.rgba[..., 3] > 0.5)
+    cropped = crop_boxes(full.rgba[..., 3:].permute(0, 3, 1, 2), box, 128)[0, 0] > 0.5
+    fov, principal = crop_intrinsics(240, 320, box[0], camera.fov_y)
+    direct = MeshRenderer(blend="hard")(mesh, replace(camera, fov_y=fov, principal=principal), lights, 128, 128)
+    assert _iou(direct.rgba[0, ..., 3] > 0.5, cropped) > 0.97
+
+
+def test_point_light_fit_explains_our_renders():
+    mesh, (camera, lights) = _bunny(), _view()
+    out = MeshRenderer(blend="hard")(mesh, camera, lights, 128, 128)
+    fragments = out.fragments
+    predicted, _, fitted = relight_fragments(mesh, fragments, camera, pixels_at(out.image, fragments))
+    seen = pixels_at(out.image, fragments)
+    assert float((seen - predicted).pow(2).mean().sqrt()) < 0.01
+    # The colours do vary a lot, so a small misfit is the fit's doing.
+    flat = (seen - seen.mean(0)).pow(2).mean().sqrt()
+    assert float(flat) > 0.05
+
+
+def test_unrender_averages_pixels_per_uv_cell():
+    mesh, (camera, _) = _bunny(), _view()
+    fragments, uv, _ = surface_at_pixels(mesh, camera, 96, 96)
+    values = torch.full((len(uv), 2), 0.25)
+    values[:, 1] = 0.75
+    maps = unrender(values, uv, fragments.batch, 1, 16)
+    covered = maps[0, 2] > 0
+    assert covered.any() and not covered.all()
+    assert torch.allclose(maps[0, 0][covered], torch.tensor(0.25)) and torch.allclose(maps[0, 1][covered], torch.tensor(0.75))
+    assert float(maps[0, :2][:, ~covered].abs().max()) == 0.0
+
+
+def test_uv_maps_isolate_a_texture_change():
+    """What the informed decoder reads: near zero for the original, the change for a marked texture."""
+    mesh, (camera, lights) = _bunny(), _view()
+    picture = MeshRenderer()(mesh, camera, lights, 128, 128).image
+    clean = uv_maps(mesh, picture, camera, 32)
+    marked_textures = [t + 0.05 * torch.sign(torch.randn(1, *t.shape[1:], generator=torch.Generator().manual_seed(0)))
+                       for t in mesh.textures]
+    marked = MeshRenderer()(replace(mesh, textures=[t.clamp(0, 1) for t in marked_textures]), camera, lights, 128, 128).image
+    changed = uv_maps(mesh, marked, camera, 32)
+    covered = clean[:, 9] > 0
+    residual_clean = clean[:, :3].abs().mean(1)[covered].mean() / 10
+    residual_marked = changed[:, :3].abs().mean(1)[covered].mean() / 10
+    assert residual_clean < 0.01 and residual_marked > 2 * residual_clean
+
+
+def test_registration_recovers_the_view():
+    """Registration of a picture from an unknown camera: the registered view maps the picture's pixels
+    to nearly the same texture cells as the true camera does."""
+    torch.manual_seed(0)
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    out = MeshRenderer()(mesh, camera, lights, 240, 320, (0.5, 0.5, 0.5))
+    found = register(mesh, out.image[0], out.rgba[0, ..., 3] > 0.5, torch.tensor([0.5, 0.5, 0.5]), size=128)
+    assert found.iou > 0.9
+    fov, principal = crop_intrinsics(240, 320, found.box, camera.fov_y)
+    true = replace(camera, fov_y=fov, principal=principal)
+    fragments_true, uv_true, _ = surface_at_pixels(mesh, true, 128, 128)
+    fragments_found, uv_found, _ = surface_at_pixels(mesh, found.camera, 128, 128)
+    table = torch.full((128 * 128, 2), float("nan"))
+    table[fragments_true.pixel] = uv_true
+    both = ~torch.isnan(table[fragments_found.pixel, 0])
+    error = (table[fragments_found.pixel][both] - uv_found[both])
+    error = (error - torch.round(error)).norm(dim=-1) * 64  # in cells of a 64 x 64 UV grid
+    assert float(error.median()) < 1.0
+
+
+def test_camera_metadata_round_trip_and_errors(tmp_path, capsys):
+    assert main(["render", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.png"), "--width", "64",
+                 "--height", "48", "--camera", "1,-3,2"]) == 0
+    with Image.open(tmp_path / "b.png") as image:
+        values = json.loads(image.info["meshseal:camera"])
+    camera = camera_from_dict(values)
+    assert torch.allclose(camera.eye, torch.tensor([[1.0, -3.0, 2.0]])) and camera.fov_y == 60.0
+    assert camera_to_dict(camera) == values
+    for bad in ({}, {"eye": [1, 2], "at": [0, 0, 0], "up": [0, 0, 1], "fov_y": 60},
+                {"eye": [1, 2, 3], "at": [0, 0, 0], "up": [0, 0, 1], "fov_y": 0}):
+        with pytest.raises(MeshsealError):
+            camera_from_dict(bad)
+
+
+INFORMED = {
+    "name": "tiny_informed", "seed": 1,
+    "model": {"n_bits": 8, "strategy": "texture", "texture_channels": 8, "texture_blocks": 2, "texture_downsample": 2,
+              "texture_tile": 4, "texture_size": 32, "decoder": "uv", "decoder_channels": 8, "uv_grid": 16},
+    "train": {"steps": 4, "batch_size": 2, "lr": 0.001, "render_size": 48, "background": "random",
+              "unrender_jitter": 0.5, "reference_steps": 4, "warmup_steps": 2, "distortion_start": 2,
+              "distortion_2d": 0.5, "val_every": 2, "val_meshes": 2, "checkpoint_every": 2},
+}
+
+
+def test_informed_model_trains_and_round_trips_on_the_cli(tmp_path, capsys):
+    import shutil
+
+    from meshseal.data.build import build
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("bunny.glb", "suzanne.glb"):
+        shutil.copy(FIXTURES / name, src / name)
+    shutil.copytree(FIXTURES / "teapot", src / "teapot")
+    build(tmp_path / "data", sources=[], texture_sources=[], from_folder=src, textures_dir=FIXTURES / "textures",
+          seed=0, n_faces=400, texture_size=32, workers=1, license_="CC0-1.0", test_fraction=0.4)
+    values = json.loads(json.dumps(INFORMED))
+    values["data"] = str(tmp_path / "data")
+    summary = Trainer(TrainConfig.from_dict(values), tmp_path / "run", log=lambda *_: None).fit()
+    assert summary["steps"] == 4
+    model = str(tmp_path / "run" / "model.safetensors")
+    bits = "10110010"
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "m.glb"), "--message", bits,
+                 "--model", model, "--views", "1"]) == 0
+    assert main(["render", str(tmp_path / "m.glb"), "-o", str(tmp_path / "v.png"), "--width", "160", "--height", "120"]) == 0
+    capsys.readouterr()
+    assert main(["detect", str(tmp_path / "v.png"), "--model", model, "--mesh", str(FIXTURES / "bunny.glb"), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert len(result["bits"]) == 8 and result["camera"] == "metadata"
+    # Without the original mesh, or with one that has no texture: one clear line, exit 2.
+    for argv in (["detect", str(tmp_path / "v.png"), "--model", model],
+                 ["detect", str(tmp_path / "v.png"), "--model", model, "--mesh", str(FIXTURES / "cube.off")],
+                 ["detect", str(tmp_path / "v.png"), "--model", model, "--mesh", str(FIXTURES / "bunny.glb"), "--fov", "0"]):
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("meshseal: error:"), argv
