@@ -56,3 +56,50 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
         "n_meshes": count,
         "n_views": views,
     }
+
+
+def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
+                        size: int = 256, sampler: str = "seed", log=None) -> dict:
+    """Informed models end to end, as `meshseal detect --register` runs: each test mesh is watermarked,
+    rendered once (size x size, random view and light from `sampler`'s ranges, plain random
+    background), the object is found in the picture, its camera registered against the original mesh,
+    and the picture un-rendered and decoded. Slow (a registration per picture)."""
+    from .framing import object_mask
+    from .pipeline import random_backgrounds, sample_views, uv_maps
+    from .register import register
+    from .render import MeshBatch
+
+    if not model.informed:
+        raise ValueError("registration is for informed models")
+    was_training = model.training
+    model.eval()
+    generator = torch.Generator().manual_seed(seed + 2_000_003)
+    renderer = MeshRenderer()
+    count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
+    accuracies, ious = [], []
+    device = next(model.parameters()).device
+    for index in range(count):
+        batch = collate([dataset[index]], device)
+        message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float().to(device)
+        positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
+        with torch.no_grad():
+            normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
+            cameras, lights = sample_views(1, sampler, generator)
+            background = random_backgrounds(1, generator)
+            picture = renderer(MeshBatch.from_tensors(positions, normals_marked, uvs_marked, faces, texture_marked),
+                               cameras, lights, size, size, background).image[0].clamp(0, 1)
+            picture = torch.round(picture * 255) / 255  # what a saved 8-bit PNG holds
+        mask, found_background = object_mask(picture.permute(1, 2, 0).cpu().numpy())
+        original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
+        found = register(original, picture, torch.from_numpy(mask), torch.from_numpy(found_background).to(picture),
+                         size=size)
+        with torch.no_grad():
+            logits = model.decode(uv_maps(original, found.picture, found.camera, model.config.uv_grid))
+        accuracies.append(bit_accuracy(logits, message))
+        ious.append(found.iou)
+        if log is not None:
+            log(f"mesh {index + 1}/{count}: bit_acc {float(accuracies[-1]):.4f} registration IoU {found.iou:.3f}")
+    model.train(was_training)
+    accuracy = torch.cat(accuracies)
+    return {"bit_acc": float(accuracy.mean()), "bit_acc_std": float(accuracy.std()) if count > 1 else 0.0,
+            "registration_iou": float(sum(ious) / len(ious)), "n_meshes": count, "n_views": 1, "size": size}

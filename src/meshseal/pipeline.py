@@ -1,5 +1,6 @@
-"""One pass of the whole pipeline on a batch: embed -> distort (3D) -> render -> frame -> distort (2D)
--> decode. Shared by training, validation and `meshseal eval` so they measure the same thing."""
+"""One pass of the whole pipeline on a batch: embed -> distort (3D) -> render -> distort (2D) -> frame
+(blind decoders) or un-render onto the original's UV space (informed ones) -> decode. Shared by
+training, validation and `meshseal eval` so they measure the same thing."""
 
 from __future__ import annotations
 

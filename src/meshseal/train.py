@@ -72,6 +72,7 @@ class TrainSettings:
     texture_kinds: list | None = None  # only items whose texture is of these kinds (own | real | noise)
     unrender_jitter: float = 0.0  # informed models: pose error (pixels) of the un-rendering camera (ramps up over warmup_steps)
     reference_steps: int = 0  # informed models: subtract the exact original render at first, fading out by this step
+    texture_rms_start: float | None = None  # fixed-power marks: start this loud, reach texture_rms after warmup_steps
 
 
 @dataclass
@@ -278,6 +279,12 @@ class Trainer:
         warmup = self.config.train.warmup_steps
         return 1.0 if warmup <= 0 else min(1.0, self.step / warmup)
 
+    def _set_mark_power(self, ramp: float) -> None:
+        """A loud mark while the decoder finds it, squeezed to the model's own RMS by the warmup's end."""
+        start, encoder = self.config.train.texture_rms_start, self.model.texture_encoder
+        if start is not None and encoder is not None and self.config.model.texture_rms > 0:
+            encoder.rms = start + (self.config.model.texture_rms - start) * ramp
+
     def _reference_mix(self) -> float:
         """1 for the first half of `reference_steps`, then linearly down to 0 at `reference_steps`."""
         total = self.config.train.reference_steps
@@ -303,6 +310,7 @@ class Trainer:
         message = torch.randint(0, 2, (n, self.model.n_bits), generator=self.generator).float().to(self.device)
         distorting = self.step >= cfg.distortion_start
         ramp = self._ramp()
+        self._set_mark_power(ramp)
         stats: dict[str, float] = {}
         if self.step < cfg.pretrain_steps and self.model.texture_encoder is not None:
             marked = self.model.texture_encoder(batch["texture"], message)

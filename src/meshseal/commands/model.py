@@ -49,6 +49,9 @@ def register(subparsers) -> None:
     evaluate.add_argument("--texture-kinds", default=None,
                           help="only items with these texture kinds, comma-separated (own,real,noise)")
     evaluate.add_argument("--seed", type=int, default=0)
+    evaluate.add_argument("--register", action="store_true",
+                          help="informed models: detect as `meshseal detect --register` does (one view per mesh, "
+                               "camera found by registration; slow)")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(func=run_eval)
 
@@ -166,7 +169,7 @@ def run_eval(args) -> int:
     from ..api import load
     from ..data.dataset import MeshDataset
     from ..distortions import Distortions2D, Distortions3D
-    from ..evaluate import evaluate
+    from ..evaluate import evaluate, evaluate_registered
 
     watermarker = load(args.model)
     if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
@@ -175,9 +178,16 @@ def run_eval(args) -> int:
     dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
     if len(dataset) == 0:
         raise MeshsealError(f"{args.data}: the {args.split} split is empty")
-    metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, args.size, args.sampler,
-                       distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
-                       distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None)
+    if args.register:
+        if not watermarker.informed:
+            raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
+        log = None if args.json else print
+        metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(args.size, 64),
+                                      args.sampler, log)
+    else:
+        metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, args.size, args.sampler,
+                           distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
+                           distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None)
     metrics = {"model": watermarker.name, "split": args.split, "sampler": args.sampler} | metrics
     if args.json:
         print(json.dumps(metrics))

@@ -2,7 +2,8 @@
 
 Both work at a fixed working resolution: a texture of any size and aspect is resized to `size`, the
 residual is computed there and upsampled (bilinear) onto the full-resolution texture, as image
-watermarkers do. The residual is bounded by `strength * tanh(.)`.
+watermarkers do. The residual is bounded by `strength * tanh(.)` or, with `rms` > 0, rescaled to that
+RMS: a fixed-power mark, whose pattern alone is learned.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ class TextureEncoder(nn.Module):
 
     size: int = 128
     strength: float = 0.1
+    rms: float = 0.0  # > 0: the residual is rescaled to this RMS (a fixed-power mark; strength is unused)
 
     def residual(self, texture: torch.Tensor, message: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
@@ -35,7 +37,11 @@ class TextureEncoder(nn.Module):
         if (height, width) != (self.size, self.size):
             working = F.interpolate(texture, size=(self.size, self.size), mode="bilinear", align_corners=False,
                                     antialias=True)
-        residual = self.strength * torch.tanh(self.residual(working, message))
+        raw = self.residual(working, message)
+        if self.rms > 0:  # always the full budget: the decoder has a mark to find from the first step
+            residual = self.rms * raw / raw.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt().clamp_min(1e-8)
+        else:
+            residual = self.strength * torch.tanh(raw)
         if (height, width) != (self.size, self.size):
             residual = F.interpolate(residual, size=(height, width), mode="bilinear", align_corners=False)
         return (texture + residual).clamp(0.0, 1.0)

@@ -25,6 +25,7 @@ class ModelConfig:
     texture_blocks: int = 4
     texture_downsample: int = 1
     texture_strength: float = 0.1
+    texture_rms: float = 0.0  # > 0: fixed-power mark of this RMS at the working size (texture PSNR ~ -20 log10 rms)
     texture_size: int = 128
     texture_tile: int = 0  # > 0: a learned periodic carrier of this period (in working-size texels)
     texture_tile_channels: int = 8
@@ -67,8 +68,10 @@ class WatermarkModel(nn.Module):
                                                             config.texture_size, config.texture_strength,
                                                             config.texture_downsample, config.texture_tile,
                                                             config.texture_tile_channels)
+                self.texture_encoder.rms = config.texture_rms
             elif config.texture_encoder == "unet":
                 self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
+                self.texture_encoder.rms = config.texture_rms
             else:
                 raise ValueError(f"unknown texture encoder '{config.texture_encoder}'")
         self.vertex_encoder = None

@@ -84,7 +84,7 @@ class RenderOutput:
         return self.rgba[..., :3].permute(0, 3, 1, 2)
 
 
-def _per_fragment(table: torch.Tensor, fragments: Fragments) -> torch.Tensor:
+def per_fragment(table: torch.Tensor, fragments: Fragments) -> torch.Tensor:
     """Look up a per-face (F,) or (B, F) table at the fragments."""
     if table.dim() == 1:
         return table[fragments.face]
@@ -118,7 +118,7 @@ class MeshRenderer:
             attributes.append(batch.uvs.expand(n_batch, -1, -1) if batch.uvs.shape[0] == 1 else batch.uvs)
         interpolated = interpolate(torch.cat(attributes, dim=-1), fragments)
         world, normal = interpolated[:, :3], interpolated[:, 3:6]
-        material = _per_fragment(batch.face_material, fragments)
+        material = per_fragment(batch.face_material, fragments)
         if batch.uvs is None:
             albedo = world.new_ones(world.shape[0], 3)
         else:

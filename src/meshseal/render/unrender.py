@@ -12,6 +12,7 @@ import torch
 from .cameras import Cameras
 from .interpolate import interpolate
 from .rasterizer import Fragments, rasterize
+from .renderer import per_fragment
 from .texture import sample_textures
 
 
@@ -30,8 +31,7 @@ def surface_attributes(batch, fragments: Fragments) -> tuple[torch.Tensor, torch
     n_batch = fragments.shape[0]
     uvs = batch.uvs.expand(n_batch, -1, -1) if batch.uvs.shape[0] == 1 else batch.uvs
     uv = interpolate(uvs, fragments)
-    table = batch.face_material
-    material = table[fragments.face] if table.dim() == 1 else table[fragments.batch, fragments.face]
+    material = per_fragment(batch.face_material, fragments)
     albedo = sample_textures(batch.textures, uv, material) * batch.diffuse.index_select(0, material)
     return uv, albedo
 
