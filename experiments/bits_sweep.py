@@ -1,11 +1,11 @@
 """Payload sweep: train one config at several message lengths and strategies, evaluate each on the
 test split, and print the table (the issue's 8/16/32/48 bits x texture / vertex+texture grid).
 
-    python experiments/bits_sweep.py --config configs/default.yaml --steps 1000 --out runs/sweep_default
+    python experiments/bits_sweep.py --config configs/default.yaml --steps 1000 --schedule-from 6000 --out runs/sweep_default
     python experiments/bits_sweep.py --config configs/seed_paper.yaml --steps 600 --out runs/sweep_seed
 
 Every run is the config with `n_bits`, `strategy` and the step budget overridden (step-based schedule
-knobs scale with the budget); runs resume, finished ones are skipped, and each result is appended to
+knobs scale with the budget: by steps / --schedule-from); runs resume, finished ones are skipped, and each result is appended to
 OUT/results.jsonl. Evaluation: `--eval-meshes` test meshes, one view each from the seed's ranges, our
 differentiable renderer, known camera (informed models: no registration error), seed fixed.
 """
@@ -26,9 +26,10 @@ from meshseal.train import TrainConfig, Trainer
 SCALED = ("warmup_steps", "distortion_start", "reference_steps", "pretrain_steps")
 
 
-def run_one(base: TrainConfig, bits: int, strategy: str, steps: int, out: Path, eval_meshes: int) -> dict:
+def run_one(base: TrainConfig, bits: int, strategy: str, steps: int, out: Path, eval_meshes: int,
+            schedule_from: int) -> dict:
     config = TrainConfig.from_dict(base.to_dict())
-    scale = steps / base.train.steps
+    scale = steps / schedule_from
     config.model.n_bits, config.model.strategy = bits, strategy
     for name in SCALED:
         setattr(config.train, name, int(round(getattr(config.train, name) * scale)))
@@ -53,6 +54,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--eval-meshes", type=int, default=96)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--schedule-from", type=int, default=None,
+                        help="the step budget the config's schedule knobs are scaled from (default: its steps)")
     args = parser.parse_args()
     base = TrainConfig.load(args.config)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -67,7 +70,8 @@ def main() -> None:
             key = (bits, strategy, args.steps)
             if key not in done:
                 torch.manual_seed(base.seed)
-                done[key] = run_one(base, bits, strategy, args.steps, args.out, args.eval_meshes)
+                done[key] = run_one(base, bits, strategy, args.steps, args.out, args.eval_meshes,
+                                    args.schedule_from or base.train.steps)
                 with open(results_path, "a") as stream:
                     stream.write(json.dumps(done[key]) + "\n")
             row = done[key]

@@ -135,3 +135,17 @@ def test_framing_finds_the_object_and_crops_square():
     centre = framed[0, :, 28:36, 28:36]
     assert torch.allclose(centre, torch.full_like(centre, 0.2), atol=1e-4)
     assert torch.allclose(framed[0, :, 0, 0], torch.tensor([0.9, 0.9, 0.9]), atol=1e-4)
+
+
+def test_fixed_power_mark_has_the_configured_rms():
+    config = ModelConfig.from_dict(dict(SMALL, n_bits=8, texture_rms=0.05, texture_tile=4))
+    model = WatermarkModel(config).eval()
+    texture = torch.full((2, 3, 64, 48), 0.5)  # mid grey: nothing is clipped
+    message = torch.randint(0, 2, (2, 8), generator=torch.Generator().manual_seed(0)).float()
+    with torch.no_grad():
+        marked = model.texture_encoder(texture, message)
+    rms = (marked - texture).pow(2).mean(dim=(1, 2, 3)).sqrt()
+    assert torch.allclose(rms, torch.tensor([0.05, 0.05]), rtol=0.1)
+    with torch.no_grad():
+        other = model.texture_encoder(texture, 1 - message)
+    assert float((other - marked).abs().mean()) > 0.01  # the pattern carries the message

@@ -73,6 +73,7 @@ class TrainSettings:
     unrender_jitter: float = 0.0  # informed models: pose error (pixels) of the un-rendering camera (ramps up over warmup_steps)
     reference_steps: int = 0  # informed models: subtract the exact original render at first, fading out by this step
     texture_rms_start: float | None = None  # fixed-power marks: start this loud, reach texture_rms after warmup_steps
+    lr_decay_from: int | None = None  # cosine decay of the learning rate to 5 % from this step to the last
 
 
 @dataclass
@@ -279,6 +280,14 @@ class Trainer:
         warmup = self.config.train.warmup_steps
         return 1.0 if warmup <= 0 else min(1.0, self.step / warmup)
 
+    def _set_learning_rate(self) -> None:
+        cfg = self.config.train
+        if cfg.lr_decay_from is None or self.step < cfg.lr_decay_from:
+            return
+        progress = (self.step - cfg.lr_decay_from) / max(1, cfg.steps - cfg.lr_decay_from)
+        for group in self.optimizer.param_groups:
+            group["lr"] = cfg.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress))))
+
     def _set_mark_power(self, ramp: float) -> None:
         """A loud mark while the decoder finds it, squeezed to the model's own RMS by the warmup's end."""
         start, encoder = self.config.train.texture_rms_start, self.model.texture_encoder
@@ -311,6 +320,7 @@ class Trainer:
         distorting = self.step >= cfg.distortion_start
         ramp = self._ramp()
         self._set_mark_power(ramp)
+        self._set_learning_rate()
         stats: dict[str, float] = {}
         if self.step < cfg.pretrain_steps and self.model.texture_encoder is not None:
             marked = self.model.texture_encoder(batch["texture"], message)
