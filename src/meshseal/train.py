@@ -374,6 +374,9 @@ class Trainer:
         val_path = self.out / "val.csv"
         if not val_path.exists() or self.step == 0:
             val_path.write_text("step,bit_acc,psnr_render,ssim_render,psnr_texture,elapsed_s\n")
+        for path in (log_path, val_path):  # a resumed run drops rows logged after its checkpoint
+            lines = path.read_text().splitlines(keepends=True)
+            path.write_text("".join(lines[:1] + [line for line in lines[1:] if int(line.split(",")[0]) <= self.step]))
         batches = self._batches()
         start = time.time() - self.elapsed
         recent: list[float] = []
