@@ -13,8 +13,8 @@ from .data.dataset import vertex_mask
 from .distortions import Distortions2D, Distortions3D
 from .framing import boxes_from_mask, crop_boxes
 from .models import WatermarkModel
-from .render import (Cameras, MeshBatch, MeshRenderer, lights_at, pixels_at, relight_fragments, sample_any_lights,
-                     sample_any_view_cameras, sample_seed_cameras, sample_seed_lights, surface_attributes, unrender)
+from .render import (Cameras, MeshBatch, MeshRenderer, interpolate, lights_at, pixels_at, relight_fragments,
+                     sample_any_lights, sample_any_view_cameras, sample_seed_cameras, sample_seed_lights, unrender)
 from .render.lighting import K_AMBIENT
 
 
@@ -83,7 +83,7 @@ def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, r
         unlit = replace(mesh, ambient=torch.full_like(mesh.ambient, 1.0 / K_AMBIENT))
         flat = MeshRenderer()(unlit, cameras, lights_at(cameras.eye, 0.0), height, width)  # antialiased albedo
         fragments = flat.fragments
-        uv, _ = surface_attributes(mesh, fragments)
+        uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         albedo = pixels_at(flat.image, fragments)
         _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo)
         relit = replace(mesh, ambient=ambient if mesh.ambient.shape[0] == n_images else ambient.expand_as(mesh.ambient))

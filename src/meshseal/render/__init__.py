@@ -13,11 +13,11 @@ from .shader import PhongShader
 from .splatter import splat
 from .texture import sample_texture, sample_textures
 from .relight import fit_point_light, relight_fragments
-from .unrender import facing_normals, pixels_at, surface_at_pixels, surface_attributes, unrender
+from .unrender import surface_points, pixels_at, surface_at_pixels, surface_attributes, unrender
 
 __all__ = ["Cameras", "cameras_from_eyes", "fibonacci_directions", "look_at", "perspective", "sample_any_view_cameras",
            "sample_seed_cameras", "interpolate", "scatter_to_image", "PointLights", "lights_at",
            "sample_any_lights", "sample_seed_lights", "Fragments", "clip_to_screen", "rasterize", "MeshBatch",
            "MeshRenderer", "Renderer", "RenderOutput", "PhongShader", "splat", "sample_texture",
-           "sample_textures", "facing_normals", "fit_point_light", "relight_fragments", "pixels_at", "surface_at_pixels", "surface_attributes",
+           "sample_textures", "surface_points", "fit_point_light", "relight_fragments", "pixels_at", "surface_at_pixels", "surface_attributes",
            "unrender"]

@@ -71,17 +71,14 @@ def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: tor
     w.r.t. the camera through the texture lookup (the light is held fixed), and the fit itself
     (ambient factors (B, 3), PointLights). `albedo` (P, 3) replaces the texture looked up at the pixel
     centres (e.g. an antialiased unlit render, to match an antialiased picture)."""
-    from .interpolate import interpolate
     from .shader import PhongShader
-    from .unrender import facing_normals, surface_attributes
+    from .unrender import surface_attributes, surface_points
 
     n_images = fragments.shape[0]
     if albedo is None:
         _, albedo = surface_attributes(batch, fragments)
-    positions = batch.positions.expand(n_images, -1, -1) if batch.positions.shape[0] == 1 else batch.positions
     with torch.no_grad():
-        position = interpolate(positions, fragments)
-        normal = facing_normals(batch, fragments, cameras)
+        position, normal = surface_points(batch, fragments, cameras)
     ambient, lights = fit_point_light(seen, albedo, position, normal, fragments.batch, n_images)
     pick = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
     eye = cameras.eye.to(position).detach()

@@ -42,14 +42,15 @@ def pixels_at(image: torch.Tensor, fragments: Fragments) -> torch.Tensor:
     return image.permute(0, 2, 3, 1).reshape(-1, channels).index_select(0, fragments.pixel)
 
 
-def facing_normals(batch, fragments: Fragments, cameras: Cameras) -> torch.Tensor:
-    """Unit surface normals (P, 3) at the fragments, flipped to face the camera (two-sided shading)."""
+def surface_points(batch, fragments: Fragments, cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
+    """Surface positions (P, 3) and unit normals (P, 3) at the fragments, the normals flipped to face
+    the camera (two-sided shading)."""
     n_batch = fragments.shape[0]
     expand = lambda table: table.expand(n_batch, -1, -1) if table.shape[0] == 1 else table  # noqa: E731
     values = interpolate(torch.cat([expand(batch.positions), expand(batch.normals)], dim=-1), fragments)
     normal = torch.nn.functional.normalize(values[:, 3:], dim=-1)
     view = cameras.eye.to(values).index_select(0, fragments.batch) - values[:, :3]
-    return torch.where((normal * view).sum(-1, keepdim=True) < 0, -normal, normal)
+    return values[:, :3], torch.where((normal * view).sum(-1, keepdim=True) < 0, -normal, normal)
 
 
 def unrender(values: torch.Tensor, uv: torch.Tensor, image_index: torch.Tensor, n_images: int, grid: int) -> torch.Tensor:
