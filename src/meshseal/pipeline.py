@@ -87,7 +87,7 @@ def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, r
         albedo = pixels_at(flat.image, fragments)
         _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo)
         relit = replace(mesh, ambient=ambient if mesh.ambient.shape[0] == n_images else ambient.expand_as(mesh.ambient))
-        relit_render = MeshRenderer()(relit, cameras, lights, height, width)
+        relit_render = MeshRenderer()(relit, cameras, lights, height, width, fragments=fragments)
         inside = pixels_at(relit_render.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
         keep = torch.nonzero(inside).squeeze(1)
         expected = pixels_at(relit_render.image, fragments).index_select(0, keep).to(image)

@@ -103,14 +103,15 @@ class MeshRenderer:
     sigma: float = 0.5
 
     def __call__(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, height: int, width: int,
-                 background=(0.0, 0.0, 0.0)) -> RenderOutput:
-        """Render B images; `background` is one RGB colour (3,) or one per image (B, 3)."""
+                 background=(0.0, 0.0, 0.0), fragments: Fragments | None = None) -> RenderOutput:
+        """Render B images; `background` is one RGB colour (3,) or one per image (B, 3). `fragments`: a
+        rasterization of the same positions and cameras to reuse (re-shading a view skips rasterizing)."""
         n_batch = len(cameras)
         dtype, device = batch.positions.dtype, batch.positions.device
         cameras, lights = cameras.to(device, dtype), lights.to(device, dtype)
         positions = batch.positions.expand(n_batch, -1, -1) if batch.positions.shape[0] == 1 else batch.positions
-        clip = cameras.world_to_clip(positions, width / height)
-        fragments = rasterize(clip, batch.faces, height, width)
+        if fragments is None:
+            fragments = rasterize(cameras.world_to_clip(positions, width / height), batch.faces, height, width)
         # One gather for every attribute: world position, normal and uv.
         normals = batch.normals.expand(n_batch, -1, -1) if batch.normals.shape[0] == 1 else batch.normals
         attributes = [positions, normals]
