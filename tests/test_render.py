@@ -227,6 +227,23 @@ def test_batched_equals_single(blend):
         assert torch.allclose(together[k], alone[0], atol=1e-6)
 
 
+def test_reshading_reuses_the_rasterization():
+    """Passing a view's fragments back (re-lighting the same view) gives the same picture, with
+    gradients to the shading inputs intact."""
+    mesh = fixture_scene("bunny.glb")
+    cameras = sample_seed_cameras(2, torch.Generator().manual_seed(1))
+    lights = sample_seed_lights(2, torch.Generator().manual_seed(2))
+    renderer, batch = MeshRenderer(), MeshBatch.from_mesh(mesh)
+    first = renderer(batch, cameras, lights_at(cameras.eye, 0.3), 32, 40)
+    batch.ambient = batch.ambient.clone().requires_grad_(True)
+    again = renderer(batch, cameras, lights, 32, 40, fragments=first.fragments)
+    fresh = renderer(batch, cameras, lights, 32, 40)
+    assert torch.allclose(again.rgba, fresh.rgba, atol=1e-6)
+    assert not torch.allclose(again.rgba, first.rgba, atol=1e-2)
+    again.rgba.sum().backward()
+    assert batch.ambient.grad.abs().sum() > 0
+
+
 def test_batch_of_meshes_equals_single():
     base = fixture_scene("suzanne.glb")
     generator = torch.Generator().manual_seed(0)
