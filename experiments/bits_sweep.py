@@ -34,7 +34,7 @@ def run_one(base: TrainConfig, bits: int, strategy: str, steps: int, out: Path, 
     for name in SCALED:
         setattr(config.train, name, int(round(getattr(config.train, name) * scale)))
     config.train.steps, config.train.val_every, config.train.time_limit_minutes = steps, steps, None
-    config.name = f"{base.name}_{bits}_{strategy.replace('+', '_')}"
+    config.name = f"{base.name}_{bits}_{strategy.replace('+', '_')}_{steps}"
     folder = out / config.name
     started = time.time()
     trainer = Trainer(config, folder, resume=True, log=lambda *_: None)
