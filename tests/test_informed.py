@@ -5,13 +5,14 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from PIL import Image
 
 from meshseal.cli import main
 from meshseal.errors import MeshsealError
-from meshseal.framing import boxes_from_mask, crop_boxes
+from meshseal.framing import boxes_from_mask, crop_boxes, object_mask
 from meshseal.mesh import load, normalize, to_z_up
 from meshseal.mesh.io import camera_from_dict, camera_to_dict
 from meshseal.pipeline import uv_maps
@@ -179,3 +180,8 @@ def test_shipped_default_model_round_trips_on_the_bunny(tmp_path, capsys):
     results = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     accuracy = sum(sum(a == b for a, b in zip(r["bits"], bits)) for r in results) / (32 * len(results))
     assert accuracy >= 0.85, accuracy
+    # The camera from the metadata places the object's box without searching the picture for it.
+    for index, result in enumerate(results):
+        pixels = np.asarray(Image.open(tmp_path / f"v_{index}.png").convert("RGB"), dtype=np.float32) / 255
+        found = boxes_from_mask(torch.from_numpy(object_mask(pixels)[0])[None])[0]
+        assert result["camera"] == "metadata" and torch.allclose(torch.tensor(result["box"]), found, atol=2.0)

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from .errors import MeshsealError
-from .framing import boxes_from_mask, crop_boxes, object_mask
+from .framing import box_from_points, boxes_from_mask, crop_boxes, object_mask
 from .mesh import Mesh, normalize, to_z_up
 from .models import WatermarkModel
 from .models.io import load_model, read_metadata
@@ -211,44 +211,58 @@ class Watermarker:
         return MeshBatch.from_mesh(normalize(to_z_up(replace(mesh, source=None))).to(self.device))
 
     def _detect_one(self, image, original, register: bool, fov_y: float) -> Detection:
+        from .pipeline import uv_maps
+
         pixels, alpha, camera_text = _load_image(image)
         if alpha is not None:
-            mask, background = alpha, np.zeros(3, dtype=np.float32)
             pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
-        else:
-            mask, background = object_mask(pixels)
-        box = boxes_from_mask(torch.from_numpy(mask)[None])
         tensor = torch.from_numpy(np.ascontiguousarray(pixels)).permute(2, 0, 1)[None].to(self.device)
-        background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)
+        camera = None
+        if original is not None and camera_text is not None and not register:
+            camera = _camera_from_metadata(camera_text, self.device)
         source, iou = None, None
-        if original is None:
-            framed = crop_boxes(tensor, box, self.model.config.frame_size, background_tensor)
-            logits = self.model.decode(framed.clamp(0, 1))[0].cpu()
+        if camera is not None:  # the known camera says where the object is: no need to search for it
+            from .render import clip_to_screen
+
+            height, width = pixels.shape[:2]
+            corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
+            box = box_from_points(corners.reshape(-1, 2), height, width)
+            maps = uv_maps(original, tensor.clamp(0, 1), camera, self.model.config.uv_grid)
+            logits, source = self.model.decode(maps)[0].cpu(), "metadata"
         else:
-            from .mesh.io import camera_from_dict
-            from .pipeline import uv_maps
-
-            if camera_text is not None and not register:
-                import json
-
-                try:
-                    camera = camera_from_dict(json.loads(camera_text)).to(self.device)
-                except ValueError:
-                    raise MeshsealError("the picture's camera metadata is not valid JSON") from None
-                picture, source = tensor, "metadata"
+            if alpha is not None:
+                mask, background = alpha, np.zeros(3, dtype=np.float32)
+            else:
+                mask, background = object_mask(pixels)
+            box = boxes_from_mask(torch.from_numpy(mask)[None])
+            background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)
+            if original is None:
+                framed = crop_boxes(tensor, box, self.model.config.frame_size, background_tensor)
+                logits = self.model.decode(framed.clamp(0, 1))[0].cpu()
             else:
                 from .register import register as register_camera
 
                 with torch.enable_grad():
                     found = register_camera(original, tensor[0], torch.from_numpy(mask).to(self.device),
                                             background_tensor[0], size=256, fov_y=fov_y)
-                camera, picture, source, iou = found.camera, found.picture, "registered", found.iou
-            maps = uv_maps(original, picture.clamp(0, 1), camera, self.model.config.uv_grid)
-            logits = self.model.decode(maps)[0].cpu()
+                maps = uv_maps(original, found.picture.clamp(0, 1), found.camera, self.model.config.uv_grid)
+                logits, source, iou = self.model.decode(maps)[0].cpu(), "registered", found.iou
         confidence = torch.sigmoid(logits.abs())
         bits = "".join("1" if v > 0 else "0" for v in logits.tolist())
         return Detection(bits, logits.tolist(), confidence.tolist(), float(confidence.mean()),
                          tuple(float(v) for v in box[0]), source, iou)
+
+
+def _camera_from_metadata(text: str, device):
+    """The camera a `meshseal render` picture carries in its PNG text chunk."""
+    import json
+
+    from .mesh.io import camera_from_dict
+
+    try:
+        return camera_from_dict(json.loads(text)).to(device)
+    except ValueError:
+        raise MeshsealError("the picture's camera metadata is not valid JSON") from None
 
 
 def load(model: str | None = None, device: str | None = None) -> Watermarker:

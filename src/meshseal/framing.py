@@ -25,10 +25,22 @@ def boxes_from_mask(mask: torch.Tensor, margin: float = 0.08) -> torch.Tensor:
         if len(rows) == 0:
             boxes[index] = torch.tensor([width / 2, height / 2, max(height, width) / 2])
             continue
-        top, bottom, left, right = float(rows[0]), float(rows[-1]) + 1, float(cols[0]), float(cols[-1]) + 1
-        half = max(bottom - top, right - left) / 2 * (1 + 2 * margin)
-        boxes[index] = torch.tensor([(left + right) / 2, (top + bottom) / 2, max(half, 4.0)])
+        boxes[index] = _square_box(float(rows[0]), float(rows[-1]) + 1, float(cols[0]), float(cols[-1]) + 1, margin)
     return boxes
+
+
+def box_from_points(xy: torch.Tensor, height: int, width: int, margin: float = 0.08) -> torch.Tensor:
+    """The square box (1, 3) of pixel positions xy (N, 2) (e.g. projected vertices), as `boxes_from_mask`
+    would find it for the pixels they cover, clipped to the picture."""
+    low, high = xy.detach().float().cpu().amin(0), xy.detach().float().cpu().amax(0)
+    left, right = min(max(float(low[0]), 0.0), width), min(max(float(high[0]), 0.0), width)
+    top, bottom = min(max(float(low[1]), 0.0), height), min(max(float(high[1]), 0.0), height)
+    return _square_box(top, bottom, left, right, margin).unsqueeze(0)
+
+
+def _square_box(top: float, bottom: float, left: float, right: float, margin: float) -> torch.Tensor:
+    half = max(bottom - top, right - left) / 2 * (1 + 2 * margin)
+    return torch.tensor([(left + right) / 2, (top + bottom) / 2, max(half, 4.0)])
 
 
 def crop_boxes(image: torch.Tensor, boxes: torch.Tensor, size: int, background: torch.Tensor | None = None) -> torch.Tensor:
