@@ -27,7 +27,8 @@ def test_embed_shapes_bounds_and_masking(strategy, texture_encoder):
     mask = torch.ones(2, 50)
     mask[1, 40:] = 0
     message = torch.randint(0, 2, (2, 8)).float()
-    new_normals, new_uvs, new_texture = model.embed(positions, normals, uvs, texture, message, mask)
+    with torch.no_grad():
+        new_normals, new_uvs, new_texture = model.embed(positions, normals, uvs, texture, message, mask)
     assert new_texture.shape == texture.shape and 0 <= float(new_texture.min()) and float(new_texture.max()) <= 1
     assert torch.allclose(new_normals.norm(dim=-1), torch.ones(2, 50), atol=1e-5)
     if "vertex" in strategy:
