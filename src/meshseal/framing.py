@@ -32,9 +32,8 @@ def boxes_from_mask(mask: torch.Tensor, margin: float = 0.08) -> torch.Tensor:
 def box_from_points(xy: torch.Tensor, height: int, width: int, margin: float = 0.08) -> torch.Tensor:
     """The square box (1, 3) of pixel positions xy (N, 2) (e.g. projected vertices), as `boxes_from_mask`
     would find it for the pixels they cover, clipped to the picture."""
-    low, high = xy.detach().float().cpu().amin(0), xy.detach().float().cpu().amax(0)
-    left, right = min(max(float(low[0]), 0.0), width), min(max(float(high[0]), 0.0), width)
-    top, bottom = min(max(float(low[1]), 0.0), height), min(max(float(high[1]), 0.0), height)
+    xy = xy.detach().float().cpu().clamp(torch.zeros(2), torch.tensor([float(width), float(height)]))
+    (left, top), (right, bottom) = xy.amin(0).tolist(), xy.amax(0).tolist()
     return _square_box(top, bottom, left, right, margin).unsqueeze(0)
 
 
