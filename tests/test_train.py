@@ -90,9 +90,10 @@ def test_cli_embed_render_detect_eval_round_trip(dataset, tmp_path, capsys):
     assert main(["embed", str(FIXTURES / "multi_material.glb"), "-o", str(tmp_path / "m.glb"),
                  "--message", bits, "--model", model, "--json", "--views", "2"]) == 0
     report = json.loads(capsys.readouterr().out)
-    for key in ("psnr_texture", "normal_angle_deg", "uv_shift_texels", "psnr_render", "ssim_render"):
+    for key in ("psnr_texture", "normal_angle_deg", "uv_shift_texels", "psnr_object", "ssim_object", "flip_object",
+                "psnr_frame", "ssim_frame"):
         assert key in report
-    assert report["psnr_render"] > 20
+    assert 20 < report["psnr_object"] <= report["psnr_frame"] and 0 <= report["flip_object"] <= 1
     marked = meshseal.load_mesh(tmp_path / "m.glb")
     original = meshseal.load_mesh(FIXTURES / "multi_material.glb")
     assert torch.equal(marked.positions, original.positions) and marked.n_faces == original.n_faces
@@ -104,8 +105,8 @@ def test_cli_embed_render_detect_eval_round_trip(dataset, tmp_path, capsys):
     assert len(result["bits"]) == 8 and set(result["bits"]) <= {"0", "1"} and 0.5 <= result["confidence"] <= 1
     assert main(["eval", "--data", str(dataset), "--model", model, "--views", "2", "--json"]) == 0
     metrics = json.loads(capsys.readouterr().out)
-    for key in ("bit_acc", "bit_acc_std", "psnr_render", "ssim_render", "psnr_texture", "l1_normal", "l1_uv",
-                "n_meshes", "n_views"):
+    for key in ("bit_acc", "bit_acc_std", "psnr_object", "ssim_object", "flip_object", "psnr_render", "ssim_render",
+                "psnr_texture", "l1_normal", "l1_uv", "n_meshes", "n_views"):
         assert key in metrics
     assert metrics["n_views"] == 2 and 0 <= metrics["bit_acc"] <= 1
     # Bad input: wrong message length, not bits, unreadable image, a mesh that can't carry the mark.

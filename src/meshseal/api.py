@@ -137,16 +137,19 @@ class Watermarker:
 
     @property
     def device(self) -> torch.device:
-        return next(self.model.parameters()).device
+        return self.model.device
 
     # ------------------------------------------------------------ embed
     @torch.no_grad()
-    def embed(self, mesh: Mesh, bits) -> Mesh:
+    def embed(self, mesh: Mesh, bits, strength: float = 1.0) -> Mesh:
         """A copy of `mesh` carrying `bits` in its textures (and normals/uvs with a vertex encoder).
 
-        Positions and faces never change. Textures of any size are marked at the model's working
-        resolution and the residual is upsampled onto them.
+        Positions and faces never change. Learned encoders mark textures of any size at the model's
+        working resolution and upsample the residual; spread-spectrum models mark at full resolution,
+        `strength` times their default amplitude (2: 6 dB louder and more robust; 0.5: quieter).
         """
+        if not 0.0 < strength <= 10.0:
+            raise MeshsealError(f"strength must be in (0, 10], got {strength}")
         message = parse_bits(bits, self.n_bits).to(self.device).unsqueeze(0)
         marked = mesh.copy()
         textured = [m for m in marked.materials if m.texture is not None]
@@ -154,7 +157,11 @@ class Watermarker:
         if encoder.texture_encoder is not None and textured and marked.uvs is not None:
             for material in textured:
                 texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
-                material.texture = encoder.texture_encoder(texture, message)[0].permute(1, 2, 0).cpu()
+                try:
+                    marked_texture = encoder.mark_texture(texture, message, strength)
+                except ValueError as error:
+                    raise MeshsealError(str(error)) from None
+                material.texture = marked_texture[0].permute(1, 2, 0).cpu()
         elif encoder.vertex_encoder is None:
             raise MeshsealError("the mesh has no texture with UVs to carry the watermark, and this model "
                                 "only marks textures")
@@ -211,7 +218,7 @@ class Watermarker:
         return MeshBatch.from_mesh(normalize(to_z_up(replace(mesh, source=None))).to(self.device))
 
     def _detect_one(self, image, original, register: bool, fov_y: float) -> Detection:
-        from .pipeline import uv_maps
+        from .pipeline import read_bits
 
         pixels, alpha, camera_text = _load_image(image)
         if alpha is not None:
@@ -227,8 +234,7 @@ class Watermarker:
             height, width = pixels.shape[:2]
             corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
             box = box_from_points(corners.reshape(-1, 2), height, width)
-            maps = uv_maps(original, tensor.clamp(0, 1), camera, self.model.config.uv_grid)
-            logits, source = self.model.decode(maps)[0].cpu(), "metadata"
+            logits, source = read_bits(self.model, original, tensor.clamp(0, 1), camera)[0].cpu(), "metadata"
         else:
             if alpha is not None:
                 mask, background = alpha, np.zeros(3, dtype=np.float32)
@@ -245,8 +251,8 @@ class Watermarker:
                 with torch.enable_grad():
                     found = register_camera(original, tensor[0], torch.from_numpy(mask).to(self.device),
                                             background_tensor[0], size=256, fov_y=fov_y)
-                maps = uv_maps(original, found.picture.clamp(0, 1), found.camera, self.model.config.uv_grid)
-                logits, source, iou = self.model.decode(maps)[0].cpu(), "registered", found.iou
+                logits = read_bits(self.model, original, found.picture.clamp(0, 1), found.camera)[0].cpu()
+                source, iou = "registered", found.iou
         confidence = torch.sigmoid(logits.abs())
         bits = "".join("1" if v > 0 else "0" for v in logits.tolist())
         return Detection(bits, logits.tolist(), confidence.tolist(), float(confidence.mean()),

@@ -1,4 +1,6 @@
-"""Evaluation on a data split: bit accuracy, rendered and texture PSNR/SSIM, vertex changes.
+"""Evaluation on a data split: bit accuracy, what a person sees (PSNR, SSIM and FLIP over the object's
+pixels; whole-frame PSNR/SSIM as `psnr_render`/`ssim_render`, as the seed paper reports), texture
+PSNR, vertex changes.
 
 Deterministic for a seed: the same meshes, messages, cameras and lights every time.
 """
@@ -10,6 +12,7 @@ import torch
 from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
+from .metrics import visibility
 from .models import WatermarkModel
 from .pipeline import run_pass
 from .render import MeshRenderer
@@ -25,8 +28,8 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
     generator = torch.Generator().manual_seed(seed + 1_000_003)
     renderer = MeshRenderer()
     count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
-    accuracies, psnrs, ssims, texture_psnrs, normal_l1, uv_l1 = [], [], [], [], [], []
-    device = next(model.parameters()).device
+    accuracies, psnrs, ssims, texture_psnrs, normal_l1, uv_l1, seen = [], [], [], [], [], [], []
+    device = model.device
     for view in range(views):
         for start in range(0, count, batch_size):
             items = [dataset[i] for i in range(start, min(count, start + batch_size))]
@@ -38,6 +41,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
             mask = out.vertex_mask
             accuracies.append(bit_accuracy(out.logits, message))
             psnrs.append(psnr(out.render_marked, out.render))
+            seen.append(visibility(out.render.cpu(), out.render_marked.cpu(), out.coverage.cpu()))
             ssims.append(ssim(out.render_marked, out.render))
             texture_psnrs.append(psnr(out.texture_marked, out.texture))
             normal_l1.append(masked_l1(out.normals_marked, out.normals, mask).reshape(1))
@@ -48,6 +52,9 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
     return {
         "bit_acc": float(accuracy.mean()),
         "bit_acc_std": float(accuracy.std()) if len(accuracy) > 1 else 0.0,
+        "psnr_object": sum(s["psnr_object"] for s in seen) / len(seen),
+        "ssim_object": sum(s["ssim_object"] for s in seen) / len(seen),
+        "flip_object": sum(s["flip_object"] for s in seen) / len(seen),
         "psnr_render": float(finite(torch.cat(psnrs)).mean()),
         "ssim_render": float(torch.cat(ssims).mean()),
         "psnr_texture": float(finite(torch.cat(texture_psnrs)).mean()),
@@ -65,7 +72,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     background), the object is found in the picture, its camera registered against the original mesh,
     and the picture un-rendered and decoded. Slow (a registration per picture)."""
     from .framing import object_mask
-    from .pipeline import random_backgrounds, sample_views, uv_maps
+    from .pipeline import random_backgrounds, read_bits, sample_views
     from .register import register
     from .render import MeshBatch
 
@@ -77,7 +84,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     renderer = MeshRenderer()
     count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
     accuracies, ious = [], []
-    device = next(model.parameters()).device
+    device = model.device
     for index in range(count):
         batch = collate([dataset[index]], device)
         message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float().to(device)
@@ -94,7 +101,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         found = register(original, picture, torch.from_numpy(mask), torch.from_numpy(found_background).to(picture),
                          size=size)
         with torch.no_grad():
-            logits = model.decode(uv_maps(original, found.picture, found.camera, model.config.uv_grid))
+            logits = read_bits(model, original, found.picture, found.camera)
         accuracies.append(bit_accuracy(logits, message))
         ious.append(found.iou)
         if log is not None:

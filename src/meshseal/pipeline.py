@@ -32,6 +32,7 @@ class PassOutput:
     render_marked: torch.Tensor  # (B, 3, H, W) watermarked, before 2D distortions
     decoded_input: torch.Tensor  # (B, 3, S, S) what the decoder saw (informed: UV maps (B, 10, G, G))
     vertex_mask: torch.Tensor | None  # (B, V) real vertices (None: no padding information)
+    coverage: torch.Tensor  # (B, H, W) the marked object's interior pixels in the renders
 
 
 def sample_views(n: int, sampler: str, generator: torch.Generator):
@@ -67,17 +68,29 @@ def jitter_cameras(cameras: Cameras, pixels: float, size: int, generator: torch.
     return replace(cameras, eye=cameras.eye + shift(), at=cameras.at + shift())
 
 
-def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, reference: torch.Tensor | None = None,
-            reference_mix: float = 0.0) -> torch.Tensor:
-    """What the informed decoder reads: the picture (B, 3, H, W) seen from `cameras`, un-rendered onto
-    the original mesh's UV grid -> (B, 10, grid, grid).
+@dataclass
+class RelitResidual:
+    """A picture's covered interior pixels next to the original mesh relit to match it: what the
+    picture shows (P, 3), what the original predicts there (P, 3), its unlit albedo (P, 3), the
+    texture coordinates (P, 2), material (P,) and picture index (P,) of each pixel, and the `fragments`
+    they were taken from (`keep` (P,) indexes them)."""
 
-    A point light is fitted to explain the picture from the original mesh (`relight_fragments`), the
-    original is rendered under it by our renderer, and the difference (x10) is mostly the watermark.
-    Channels: that residual (3), the picture (3), the original albedo (3), coverage (1). Silhouette
-    pixels (partly background) are left out. Training may blend in the exact `reference` (the original
-    rendered under the picture's own light) with weight `reference_mix`: a curriculum.
-    """
+    seen: torch.Tensor
+    expected: torch.Tensor
+    albedo: torch.Tensor
+    uv: torch.Tensor
+    material: torch.Tensor
+    image_index: torch.Tensor
+    keep: torch.Tensor
+    fragments: object
+
+
+def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> RelitResidual:
+    """Rasterize the original `mesh` from `cameras` over the picture (B, 3, H, W), fit a point light
+    that explains the picture from the original texture (`relight_fragments`) and render the original
+    under it. Silhouette pixels (partly background) are left out."""
+    from .render.renderer import per_fragment
+
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
     with torch.no_grad():
         unlit = replace(mesh, ambient=torch.full_like(mesh.ambient, 1.0 / K_AMBIENT))
@@ -90,15 +103,46 @@ def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, r
         relit_render = MeshRenderer()(relit, cameras, lights, height, width, fragments=fragments)
         inside = pixels_at(relit_render.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
         keep = torch.nonzero(inside).squeeze(1)
-        expected = pixels_at(relit_render.image, fragments).index_select(0, keep).to(image)
-        if reference is not None and reference_mix > 0:
-            exact = pixels_at(reference, fragments).index_select(0, keep).to(image)
-            expected = reference_mix * exact + (1.0 - reference_mix) * expected
-        albedo = albedo.index_select(0, keep).to(image)
-        image_index, uv = fragments.batch.index_select(0, keep), uv.index_select(0, keep).to(image)
-    seen = pixels_at(image, fragments).index_select(0, keep)
-    values = torch.cat([10.0 * (seen - expected), seen, albedo], dim=1)
-    return unrender(values, uv, image_index, n_images, grid)
+        pick = lambda values: values.index_select(0, keep)  # noqa: E731
+        return RelitResidual(pick(pixels_at(image, fragments)).to(image), pick(pixels_at(relit_render.image, fragments)).to(image),
+                             pick(albedo).to(image), pick(uv).to(image), pick(per_fragment(mesh.face_material, fragments)),
+                             pick(fragments.batch), keep, fragments)
+
+
+def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, reference: torch.Tensor | None = None,
+            reference_mix: float = 0.0) -> torch.Tensor:
+    """What the learned informed decoder reads: the picture (B, 3, H, W) seen from `cameras`,
+    un-rendered onto the original mesh's UV grid -> (B, 10, grid, grid).
+
+    Channels: the residual left by the relit original (x10: mostly the watermark; `relit_residual`),
+    the picture (3), the original albedo (3), coverage (1). Training may blend in the exact `reference`
+    (the original rendered under the picture's own light) with weight `reference_mix`: a curriculum.
+    """
+    found = relit_residual(mesh, image, cameras)
+    expected = found.expected
+    if reference is not None and reference_mix > 0:
+        exact = pixels_at(reference, found.fragments).index_select(0, found.keep).to(image)
+        expected = reference_mix * exact + (1.0 - reference_mix) * expected
+    seen = pixels_at(image, found.fragments).index_select(0, found.keep)  # differentiable in the picture
+    values = torch.cat([10.0 * (seen - expected), seen, found.albedo], dim=1)
+    return unrender(values, found.uv, found.image_index, len(cameras), grid)
+
+
+def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """Informed detection: soft bits (B, N) (logits, or matched-filter z for spread-spectrum models)
+    from pictures (B, 3, H, W) of the original `mesh` taken with `cameras`."""
+    if model.config.decoder != "matched":
+        return model.decode(uv_maps(mesh, image, cameras, model.config.uv_grid))
+    from .models.spread import matched_filter
+    from .render import sample_textures
+
+    found = relit_residual(mesh, image, cameras)
+    with torch.no_grad():
+        fields = [None if t is None else model.texture_encoder.amplitude(t[None])[0] for t in mesh.textures]
+        amplitude = sample_textures(fields, found.uv, found.material)
+        gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
+        return matched_filter(model.texture_encoder, found.seen - found.expected, found.uv, amplitude, gain,
+                              found.image_index, len(cameras))
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,
@@ -140,12 +184,16 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
     if model.informed:
         picture = marked_image if distortions_2d is None else distortions_2d(marked_image, generator)
         original_mesh = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
-        framed = uv_maps(original_mesh, picture, jitter_cameras(cameras, unrender_jitter, render_size, generator),
-                         model.config.uv_grid, original_image, reference_mix)
+        seen_from = jitter_cameras(cameras, unrender_jitter, render_size, generator)
+        if model.config.decoder == "matched":
+            framed, logits = picture, read_bits(model, original_mesh, picture, seen_from)
+        else:
+            framed = uv_maps(original_mesh, picture, seen_from, model.config.uv_grid, original_image, reference_mix)
+            logits = model.decode(framed)
     else:
         framed = frame(marked_image, marked.rgba[..., 3], model.config.frame_size, background)
         if distortions_2d is not None:
             framed = distortions_2d(framed, generator)
-    logits = model.decode(framed)
+        logits = model.decode(framed)
     return PassOutput(logits, message, texture, texture_marked, normals, normals_marked, uvs, uvs_marked,
-                      original_image, marked_image, framed, mask)
+                      original_image, marked_image, framed, mask, marked.rgba[..., 3].detach() > 0.999)

@@ -214,7 +214,8 @@ class Trainer:
                                 "not a picture")
         self.parameters = list(self.model.parameters())
         # eta * sum(w^2) in the loss is exactly Adam's coupled weight decay 2 * eta.
-        self.optimizer = torch.optim.Adam(self.parameters, lr=config.train.lr, weight_decay=2 * config.loss.reg)
+        self.optimizer = torch.optim.Adam(self.parameters, lr=config.train.lr, weight_decay=2 * config.loss.reg) \
+            if self.parameters else None  # a spread-spectrum model has nothing to learn
         self.renderer = MeshRenderer()
         self.step = 0
         self.image_weight = config.loss.image
@@ -366,6 +367,11 @@ class Trainer:
         from .evaluate import evaluate
 
         cfg = self.config.train
+        if self.optimizer is None:  # nothing to learn: the model is its config and seeded pattern
+            self._save_model()
+            summary = {"steps": 0, "elapsed_s": 0.0, "stopped_by_time_limit": False}
+            (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
+            return summary
         log_path = self.out / "log.csv"
         columns = ["step", "stage", "loss", "bit_acc", "psnr_render", "psnr_texture", "image_weight", "elapsed_s"]
         if not log_path.exists() or self.step == 0:

@@ -18,7 +18,13 @@ def register(subparsers) -> None:
     embed.add_argument("-o", "--output", type=Path, required=True, help="output mesh file (same format)")
     embed.add_argument("--message", required=True, help="the bits to hide: a string of 0/1 of the model's length")
     embed.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
-    embed.add_argument("--views", type=positive_int(64), default=4, help="views for the rendered PSNR/SSIM (default 4)")
+    embed.add_argument("--strength", type=float, default=1.0,
+                       help="spread-spectrum models: mark amplitude relative to the default (2: 6 dB louder and "
+                            "more robust, 0.5: 6 dB quieter; default 1)")
+    embed.add_argument("--views", type=positive_int(64), default=4,
+                       help="views for the visibility figures (default 4)")
+    embed.add_argument("--preview", type=Path, default=None,
+                       help="write a PNG sheet: texture and one render, original | marked | difference x4")
     embed.add_argument("--up", choices=("y", "z"), default=None, help="the file's up axis (default: by format)")
     embed.add_argument("--json", action="store_true", help="print one JSON object")
     embed.set_defaults(func=run_embed)
@@ -68,7 +74,8 @@ def register(subparsers) -> None:
 
 
 def _render_pair(original, marked, views: int, size: int = 256):
-    """Render both meshes from the same seeded views (canonical frame) -> (B, 3, H, W) each."""
+    """Render both meshes from the same seeded views (canonical frame) -> images (B, 3, H, W) each and
+    the object's interior pixels (B, H, W)."""
     import torch
 
     from ..mesh import normalize, to_z_up
@@ -81,15 +88,20 @@ def _render_pair(original, marked, views: int, size: int = 256):
     for mesh in (original, marked):
         canonical = normalize(to_z_up(mesh))
         with torch.no_grad():
-            images.append(renderer(MeshBatch.from_mesh(canonical), cameras, lights, size, size).image)
-    return images
+            out = renderer(MeshBatch.from_mesh(canonical), cameras, lights, size, size)
+        images.append(out.image)
+    return images[0], images[1], out.rgba[..., 3] > 0.999
 
 
-def embed_report(original, marked, views: int) -> dict:
-    """How much the mark changed the mesh: texture PSNR, normal angle, uv shift, rendered PSNR/SSIM."""
+def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
+    """How much the mark changed the mesh: texture PSNR, normal angle, uv shift, and what a person sees
+    in renders (256^2, seed views): PSNR, SSIM and FLIP over the object's pixels, PSNR/SSIM over the
+    whole frame beside them (as the seed paper reports; the background inflates them). Also returns
+    the renders (original, marked) for a preview."""
     import torch
 
     from ..losses import normal_angle_deg, psnr, ssim
+    from ..metrics import visibility
 
     texture_psnr, shifts = [], []
     for before, after in zip(original.materials, marked.materials):
@@ -101,15 +113,40 @@ def embed_report(original, marked, views: int) -> dict:
         per_vertex = torch.zeros(original.n_vertices)
         per_vertex[original.faces.reshape(-1)] = sizes[original.face_material].repeat_interleave(3)
         shifts.append(float(((marked.uvs - original.uvs).norm(dim=-1) * per_vertex).mean()))
-    render_a, render_b = _render_pair(original, marked, views)
-    return {
+    render_a, render_b, inside = _render_pair(original, marked, views)
+    seen = visibility(render_a, render_b, inside)
+    report = {
         "psnr_texture": round(sum(texture_psnr) / len(texture_psnr), 3) if texture_psnr else None,
         "normal_angle_deg": round(float(normal_angle_deg(marked.normals, original.normals)), 4),
         "uv_shift_texels": round(shifts[0], 4) if shifts else 0.0,
-        "psnr_render": round(float(psnr(render_b, render_a).mean()), 3),
-        "ssim_render": round(float(ssim(render_b, render_a).mean()), 5),
+        "psnr_object": round(seen["psnr_object"], 3),
+        "ssim_object": round(seen["ssim_object"], 5),
+        "flip_object": round(seen["flip_object"], 4),
+        "psnr_frame": round(float(psnr(render_b, render_a).mean()), 3),
+        "ssim_frame": round(float(ssim(render_b, render_a).mean()), 5),
         "views": views,
     }
+    return report, (render_a[0], render_b[0])
+
+
+def write_preview(path: Path, original, marked, renders) -> None:
+    """A sheet a person can judge: the first texture and one render, original | marked | difference x4
+    (grey is no change), written atomically as PNG."""
+    import torch
+    from PIL import Image
+
+    from ..mesh.io import atomic_write, image_bytes
+
+    rows = []
+    textures = [(a.texture, b.texture) for a, b in zip(original.materials, marked.materials) if a.texture is not None]
+    pairs = ([(textures[0][0].permute(2, 0, 1), textures[0][1].permute(2, 0, 1))] if textures else []) + [renders]
+    width = 256
+    for before, after in pairs:
+        before, after = (torch.nn.functional.interpolate(x[None].float(), size=(width, width), mode="area")[0]
+                         for x in (before, after))
+        rows.append(torch.cat([before, after, (0.5 + 4.0 * (after - before)).clamp(0, 1)], dim=2))
+    sheet = (torch.cat(rows, dim=1).clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy()
+    atomic_write(path, image_bytes(Image.fromarray(sheet)))
 
 
 def run_embed(args) -> int:
@@ -120,19 +157,26 @@ def run_embed(args) -> int:
     mesh = load_mesh(args.input, up_axis=args.up)
     if args.output.resolve() in (mesh.source.input_files if mesh.source else {args.input.resolve()}):
         raise MeshsealError(f"{args.output}: refusing to overwrite an input file; choose another output path")
-    marked = watermarker.embed(mesh, args.message)
+    marked = watermarker.embed(mesh, args.message, strength=args.strength)
     written = save(marked, args.output)
-    report = embed_report(mesh, marked, args.views) | {"model": watermarker.name, "n_bits": watermarker.n_bits,
-                                                       "output": str(args.output)}
+    report, renders = embed_report(mesh, marked, args.views)
+    report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": args.strength,
+               "output": str(args.output)}
+    if args.preview is not None:
+        write_preview(args.preview, mesh, marked, renders)
+        report["preview"] = str(args.preview)
     if args.json:
         print(json.dumps(report))
     else:
         print(f"wrote {', '.join(str(p) for p in written)}")
         psnr_texture = report["psnr_texture"]
         print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB, normal change "
-              f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels, "
-              f"render PSNR {report['psnr_render']:.2f} dB, SSIM {report['ssim_render']:.4f} "
-              f"({args.views} views)")
+              f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels")
+        print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {report['psnr_object']:.2f} dB, "
+              f"SSIM {report['ssim_object']:.4f}, FLIP {report['flip_object']:.4f} "
+              f"(whole frame: PSNR {report['psnr_frame']:.2f} dB, SSIM {report['ssim_frame']:.4f})")
+        if args.preview is not None:
+            print(f"wrote preview {args.preview}")
     return 0
 
 

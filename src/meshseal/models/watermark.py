@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, fields
 import torch
 from torch import nn
 
+from .spread import SpreadSpectrumEncoder
 from .decoders import HiddenDecoder, ResidualCNNDecoder, SimpleCNNDecoder, UVDecoder
 from .texture_encoders import HiddenTextureEncoder, UNetTextureEncoder
 from .vertex_encoders import PointNetVertexEncoder
@@ -20,7 +21,7 @@ class ModelConfig:
 
     n_bits: int = 32
     strategy: str = "texture"  # vertex | texture | vertex+texture
-    texture_encoder: str = "hidden"  # hidden | unet
+    texture_encoder: str = "hidden"  # hidden | unet | spread (keyed spread spectrum, see models/spread.py)
     texture_channels: int = 64
     texture_blocks: int = 4
     texture_downsample: int = 1
@@ -29,11 +30,17 @@ class ModelConfig:
     texture_size: int = 128
     texture_tile: int = 0  # > 0: a learned periodic carrier of this period (in working-size texels)
     texture_tile_channels: int = 8
+    chips: int = 128  # spread: cells per side of the UV square, each carrying one bit with a random sign
+    mark_colour: str = "blue-yellow"  # spread: colour direction of the mark
+    texture_psnr: float = 40.0  # spread: texture PSNR of the mark at strength 1
+    activity_window: int = 5  # spread: window of the just-noticeable-difference mask, in texels
+    activity_floor: float = 0.3  # spread: the mask's floor (flat areas still carry this much)
+    pattern_seed: int = 0  # spread: seed of the cell-to-bit assignment and the cell signs
     vertex_encoder: str = "pointnet2"  # pointnet (max pooling) | pointnet2 (average pooling)
     vertex_width: int = 64
     normal_strength: float = 0.05
     uv_strength: float = 0.002
-    decoder: str = "hidden"  # hidden | simple | residual (blind: read the picture) | uv (informed, see UVDecoder)
+    decoder: str = "hidden"  # hidden | simple | residual (blind) | uv (informed, UVDecoder) | matched (spread)
     decoder_channels: int = 64
     decoder_blocks: int = 7
     decoder_stem_stride: int = 1
@@ -69,6 +76,10 @@ class WatermarkModel(nn.Module):
                                                             config.texture_downsample, config.texture_tile,
                                                             config.texture_tile_channels)
                 self.texture_encoder.rms = config.texture_rms
+            elif config.texture_encoder == "spread":
+                self.texture_encoder = SpreadSpectrumEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
+                                                             config.activity_window, config.activity_floor,
+                                                             config.pattern_seed)
             elif config.texture_encoder == "unet":
                 self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
                 self.texture_encoder.rms = config.texture_rms
@@ -89,12 +100,21 @@ class WatermarkModel(nn.Module):
             self.decoder = ResidualCNNDecoder(n, config.decoder_channels)
         elif config.decoder == "uv":
             self.decoder = UVDecoder(n, config.decoder_channels, config.uv_grid)
+        elif config.decoder == "matched":
+            if config.texture_encoder != "spread" or config.strategy != "texture":
+                raise ValueError("the matched-filter decoder reads the spread texture encoder's mark alone")
+            self.decoder = None
         else:
             raise ValueError(f"unknown decoder '{config.decoder}'")
 
     @property
     def n_bits(self) -> int:
         return self.config.n_bits
+
+    @property
+    def device(self) -> torch.device:
+        """Where the model lives (a spread-spectrum model has buffers but no parameters)."""
+        return next(iter([*self.parameters(), *self.buffers()])).device
 
     def embed(self, positions, normals, uvs, texture, message, vertex_mask=None):
         """Watermark a batch: returns (normals, uvs, texture), each unchanged where its encoder is off."""
@@ -104,10 +124,18 @@ class WatermarkModel(nn.Module):
             texture = self.texture_encoder(texture, message)
         return normals, uvs, texture
 
+    def mark_texture(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
+        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread mark."""
+        if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
+            return self.texture_encoder(texture, message, strength)
+        if strength != 1.0:
+            raise ValueError("only spread-spectrum models take a strength (learned marks have a trained power)")
+        return self.texture_encoder(texture, message)
+
     @property
     def informed(self) -> bool:
         """True when detection needs the original mesh (the decoder reads un-rendered UV maps)."""
-        return self.config.decoder == "uv"
+        return self.config.decoder in ("uv", "matched")
 
     def decode(self, image: torch.Tensor) -> torch.Tensor:
         """Framed pictures (B, 3, S, S) in [0, 1] (or, informed, UV maps (B, 10, G, G)) -> logits (B, N)."""

@@ -1,0 +1,58 @@
+"""What a person sees: the difference between renders of the original and the marked mesh, measured
+over the object's pixels only (a background-dominated full frame hides a visible mark).
+
+PSNR and SSIM (Gaussian 11x11, sigma 1.5, the usual constants) are averaged over the object's pixels;
+FLIP is NVIDIA's perceptual difference for rendered pictures (`flip-evaluator`, default 67 pixels per
+degree), averaged over the same pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+def object_psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
+    """PSNR in dB of pictures (3, H, W) in [0, 1] over the pixels where `mask` (H, W) is true."""
+    error = ((a - b) ** 2).mean(0)[mask]
+    return 10.0 * math.log10(1.0 / max(float(error.mean()), 1e-12))
+
+
+def _ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM (H, W) of two pictures (3, H, W), averaged over channels."""
+    coords = torch.arange(11, dtype=a.dtype) - 5
+    gauss = torch.exp(-coords ** 2 / (2 * 1.5 ** 2))
+    window = (gauss[:, None] * gauss[None, :] / gauss.sum() ** 2).expand(3, 1, 11, 11)
+    blur = lambda x: F.conv2d(F.pad(x[None], (5, 5, 5, 5), mode="reflect"), window, groups=3)[0]  # noqa: E731
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b, cov = blur(a * a) - mu_a ** 2, blur(b * b) - mu_b ** 2, blur(a * b) - mu_a * mu_b
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return (((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))).mean(0)
+
+
+def object_ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
+    """SSIM of pictures (3, H, W) averaged over the pixels where `mask` (H, W) is true."""
+    return float(_ssim_map(a.float(), b.float())[mask].mean())
+
+
+def object_flip(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
+    """Mean FLIP error of pictures (3, H, W) in [0, 1] (sRGB) over the pixels where `mask` is true."""
+    import flip_evaluator
+
+    as_array = lambda x: np.ascontiguousarray(x.detach().cpu().permute(1, 2, 0).numpy().astype(np.float32))  # noqa: E731
+    error_map = flip_evaluator.evaluate(as_array(a), as_array(b), "LDR", applyMagma=False, computeMeanError=False)[0]
+    return float(np.asarray(error_map).squeeze()[mask.cpu().numpy()].mean())
+
+
+def visibility(original: torch.Tensor, marked: torch.Tensor, mask: torch.Tensor) -> dict:
+    """Object-pixel PSNR, SSIM and FLIP of renders (B, 3, H, W) of the original and the marked mesh
+    with the object's coverage `mask` (B, H, W), averaged over the B views; 8-bit quantised first, as
+    saved pictures are."""
+    quantise = lambda x: torch.round(x.clamp(0, 1) * 255) / 255  # noqa: E731
+    rows = [(object_psnr(quantise(o), quantise(m), k), object_ssim(quantise(o), quantise(m), k),
+             object_flip(quantise(o), quantise(m), k)) for o, m, k in zip(original, marked, mask) if k.any()]
+    return {"psnr_object": float(np.mean([r[0] for r in rows])), "ssim_object": float(np.mean([r[1] for r in rows])),
+            "flip_object": float(np.mean([r[2] for r in rows]))}

@@ -1,0 +1,100 @@
+"""A keyed spread-spectrum mark in texture space, read by a matched filter after un-rendering.
+
+The texture's UV square is cut into `chips` x `chips` cells. A fixed pseudo-random permutation (the
+model's pattern seed) gives every cell to one of the n bits and a random sign, so each bit is spread
+over cells all over the surface and any view shows some of every bit. The mark adds, at each texel,
+`sign x (+-1 for the bit) x amplitude` along one colour direction, bilinearly interpolated between
+cell centres:
+
+- the colour direction is blue-yellow (1, 1, -2): fine chroma is what the eye sees least, and the
+  relighting misfit of detection (a shading error, mostly luminance) leaves it nearly untouched;
+- the amplitude follows a just-noticeable-difference mask: proportional to local texture activity
+  (luminance standard deviation in a small window) plus a floor, so busy areas carry more than flat
+  ones; the whole residual is then scaled to a target texture PSNR (the strength knob).
+
+Detection has the original mesh and the picture's camera. The original is relit to match the picture
+(`pipeline.relit_residual`), the residual at every covered pixel is projected onto the mark's
+expected colour and amplitude there (recomputed from the original texture), and accumulated into the
+cells by the same bilinear weights. Per bit, z = sum(sign x cell) / sqrt(sum(cell^2)): with no mark
+the cell signs are independent of the picture, so z is a normalised Rademacher sum, about N(0, 1)
+whatever the picture shows; with a mark it grows with the square root of the cells seen.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+COLOURS = {"blue-yellow": (1.0, 1.0, -2.0), "grey": (1.0, 1.0, 1.0), "red-green": (1.0, -1.0, 0.0)}
+
+
+def activity_mask(texture: torch.Tensor, window: int = 5, floor: float = 0.3) -> torch.Tensor:
+    """Just-noticeable-difference weights (B, 1, H, W) of textures (B, 3, H, W): local luminance
+    standard deviation over `window` texels, relative to its image mean, plus `floor`."""
+    luminance = texture.mean(1, keepdim=True)
+    pad = (window // 2,) * 4
+    mean = F.avg_pool2d(F.pad(luminance, pad, mode="replicate"), window, 1)
+    square = F.avg_pool2d(F.pad(luminance * luminance, pad, mode="replicate"), window, 1)
+    activity = (square - mean * mean).clamp_min(0.0).sqrt()
+    return floor + activity / activity.mean(dim=(2, 3), keepdim=True).clamp_min(1e-4)
+
+
+class SpreadSpectrumEncoder(nn.Module):
+    """Texture + message -> texture carrying the spread-spectrum mark (no learned parameters: the
+    cell-to-bit assignment and the cell signs are buffers drawn from `seed`)."""
+
+    def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
+                 window: int = 5, floor: float = 0.3, seed: int = 0):
+        super().__init__()
+        if colour not in COLOURS:
+            raise ValueError(f"mark colour must be one of {', '.join(COLOURS)}")
+        generator = torch.Generator().manual_seed(seed)
+        self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
+        self.register_buffer("assign", torch.randperm(chips * chips, generator=generator) % n_bits)
+        self.register_buffer("sign", torch.randint(0, 2, (chips * chips,), generator=generator).float() * 2 - 1)
+        self.register_buffer("colour", F.normalize(torch.tensor(COLOURS[colour]), dim=0))
+
+    def amplitude(self, texture: torch.Tensor) -> torch.Tensor:
+        """Unsigned mark field (B, 3, H, W) for textures (B, 3, H, W): the mask times the colour."""
+        return activity_mask(texture, self.window, self.floor) * self.colour.to(texture)[None, :, None, None]
+
+    def cells(self, message: torch.Tensor) -> torch.Tensor:
+        """Bits (B, N) in {0, 1} -> signed cell values (B, 1, C, C)."""
+        values = self.sign * (2.0 * message - 1.0).index_select(1, self.assign)
+        return values.reshape(-1, 1, self.chips, self.chips)
+
+    def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
+        """texture (B, 3, H, W) in [0, 1], message (B, N) -> marked texture. The residual's RMS is
+        `strength` times that of the model's target texture PSNR (strength 2: 6 dB louder)."""
+        pattern = F.interpolate(self.cells(message).to(texture), size=texture.shape[-2:], mode="bilinear",
+                                align_corners=False)
+        residual = self.amplitude(texture) * pattern
+        rms = strength * 10.0 ** (-self.texture_psnr / 20.0)
+        residual = residual * rms / residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt().clamp_min(1e-8)
+        return (texture + residual).clamp(0.0, 1.0)
+
+
+def matched_filter(encoder: SpreadSpectrumEncoder, residual: torch.Tensor, uv: torch.Tensor,
+                   amplitude: torch.Tensor, gain: torch.Tensor, image_index: torch.Tensor, n_images: int) -> torch.Tensor:
+    """Soft bits z (n_images, N), about N(0, 1) per bit without a mark.
+
+    residual (P, 3): picture minus the relit original at covered pixels; uv (P, 2) their texture
+    coordinates; amplitude (P, 3) the mark's unsigned field there; gain (P,) the shading that scales
+    an albedo change into the picture; image_index (P,) which picture each pixel belongs to.
+    """
+    cells = encoder.chips
+    projected = (residual * amplitude).sum(1) * gain
+    wrapped = uv - torch.floor(uv)
+    x, y = wrapped[:, 0] * cells - 0.5, (1.0 - wrapped[:, 1]) * cells - 0.5
+    x0, y0 = torch.floor(x), torch.floor(y)
+    fx, fy = x - x0, y - y0
+    sums = projected.new_zeros(n_images * cells * cells)
+    for dx, dy, weight in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        cell = ((y0 + dy).long() % cells) * cells + (x0 + dx).long() % cells
+        sums.index_add_(0, image_index * cells * cells + cell, weight * projected)
+    signed = sums.reshape(n_images, -1) * encoder.sign.to(sums)
+    assign = encoder.assign.to(sums.device)
+    total = signed.new_zeros(n_images, encoder.n_bits).index_add(1, assign, signed)
+    energy = signed.new_zeros(n_images, encoder.n_bits).index_add(1, assign, signed * signed)
+    return total / energy.sqrt().clamp_min(1e-12)

@@ -1,0 +1,68 @@
+"""The spread-spectrum mark: invisible by the numbers, read back by the matched filter with the camera
+known, and no mark found where there is none."""
+
+import json
+from pathlib import Path
+
+import torch
+
+from meshseal.cli import main
+from meshseal.mesh import load, normalize, to_z_up
+from meshseal.models import ModelConfig, WatermarkModel
+from meshseal.pipeline import read_bits, sample_views
+from meshseal.render import MeshBatch, MeshRenderer
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+SPREAD = ModelConfig(n_bits=64, texture_encoder="spread", decoder="matched")
+
+
+def _marked_and_original(strength: float = 1.0):
+    model = WatermarkModel(SPREAD)
+    mesh = normalize(to_z_up(load(FIXTURES / "bunny.glb")))
+    message = torch.randint(0, 2, (1, 64), generator=torch.Generator().manual_seed(3)).float()
+    texture = mesh.materials[0].texture.permute(2, 0, 1)[None]
+    marked_texture = model.mark_texture(texture, message, strength)
+    return model, mesh, message, texture, marked_texture
+
+
+def test_mark_strength_sets_the_texture_psnr():
+    for strength, target in ((1.0, 40.0), (2.0, 40.0 - 20 * 0.30103)):
+        _, _, _, texture, marked = _marked_and_original(strength)
+        psnr = 10 * torch.log10(1 / ((marked - texture) ** 2).mean())
+        assert abs(float(psnr) - target) < 0.3, (strength, float(psnr))
+
+
+def test_matched_filter_reads_the_mark_and_finds_none_in_the_original():
+    model, mesh, message, _, marked_texture = _marked_and_original()
+    original = MeshBatch.from_mesh(mesh)
+    marked = MeshBatch.from_mesh(mesh)
+    marked.textures = [marked_texture[0]]
+    cameras, lights = sample_views(3, "seed", torch.Generator().manual_seed(0))
+    quantise = lambda x: torch.round(x.clamp(0, 1) * 255) / 255  # noqa: E731
+    with torch.no_grad():
+        seen_marked = quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+        seen_clean = quantise(MeshRenderer()(original, cameras, lights, 256, 256).image)
+    z_marked = torch.cat([read_bits(model, original, seen_marked[[i]], cameras[[i]]) for i in range(3)])
+    z_clean = torch.cat([read_bits(model, original, seen_clean[[i]], cameras[[i]]) for i in range(3)])
+    assert ((z_marked > 0).float() == message).float().mean() >= 0.97
+    signed = z_marked * (2 * message - 1)
+    assert signed.mean() > 1.5  # every bit well clear of the noise
+    # No mark: the soft bits look like N(0, 1), far from the marked ones.
+    assert abs(float(z_clean.mean())) < 0.35 and 0.7 < float(z_clean.std()) < 1.3
+
+
+def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, capsys):
+    bits = "01" * 32
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--message", bits,
+                 "--views", "1", "--json", "--preview", str(tmp_path / "sheet.png")]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert 39.5 < report["psnr_texture"] < 40.5
+    assert report["psnr_object"] < report["psnr_frame"]  # the background inflates the whole-frame figure
+    assert 0.0 < report["flip_object"] < 0.05 and report["ssim_object"] > 0.98
+    from PIL import Image
+
+    with Image.open(tmp_path / "sheet.png") as sheet:
+        assert sheet.size == (768, 512)
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--message", bits,
+                 "--views", "1", "--strength", "0"]) == 2
