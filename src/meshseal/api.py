@@ -250,8 +250,8 @@ class Watermarker:
 
                 with torch.enable_grad():
                     found = register_camera(original, tensor[0], torch.from_numpy(mask).to(self.device),
-                                            background_tensor[0], size=256, fov_y=fov_y)
-                logits = read_bits(self.model, original, found.picture.clamp(0, 1), found.camera)[0].cpu()
+                                            background_tensor[0], fov_y=fov_y)
+                logits = read_bits(self.model, original, tensor.clamp(0, 1), found.camera)[0].cpu()
                 source, iou = "registered", found.iou
         confidence = torch.sigmoid(logits.abs())
         bits = "".join("1" if v > 0 else "0" for v in logits.tolist())

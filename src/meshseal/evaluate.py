@@ -7,6 +7,8 @@ Deterministic for a seed: the same meshes, messages, cameras and lights every ti
 
 from __future__ import annotations
 
+import time
+
 import torch
 
 from .data.dataset import collate
@@ -73,7 +75,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     and the picture un-rendered and decoded. Slow (a registration per picture)."""
     from .framing import object_mask
     from .pipeline import random_backgrounds, read_bits, sample_views
-    from .register import register
+    from .register import pose_error, register
     from .render import MeshBatch
 
     if not model.informed:
@@ -83,7 +85,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     generator = torch.Generator().manual_seed(seed + 2_000_003)
     renderer = MeshRenderer()
     count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
-    accuracies, ious = [], []
+    accuracies, known, ious, errors, seconds = [], [], [], [], []
     device = model.device
     for index in range(count):
         batch = collate([dataset[index]], device)
@@ -98,15 +100,24 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             picture = torch.round(picture * 255) / 255  # what a saved 8-bit PNG holds
         mask, found_background = object_mask(picture.permute(1, 2, 0).cpu().numpy())
         original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
-        found = register(original, picture, torch.from_numpy(mask), torch.from_numpy(found_background).to(picture),
-                         size=size)
+        started = time.perf_counter()
+        found = register(original, picture, torch.from_numpy(mask), torch.from_numpy(found_background).to(picture))
+        seconds.append(time.perf_counter() - started)
         with torch.no_grad():
-            logits = read_bits(model, original, found.picture, found.camera)
+            logits = read_bits(model, original, picture[None], found.camera)
+            known.append(bit_accuracy(read_bits(model, original, picture[None], cameras), message))
         accuracies.append(bit_accuracy(logits, message))
         ious.append(found.iou)
+        errors.append(pose_error(original, cameras, found.camera, size, size))
         if log is not None:
-            log(f"mesh {index + 1}/{count}: bit_acc {float(accuracies[-1]):.4f} registration IoU {found.iou:.3f}")
+            log(f"mesh {index + 1}/{count}: bit_acc {float(accuracies[-1]):.4f} (known camera {float(known[-1]):.4f}) "
+                f"pose error {errors[-1]:.2f} px, IoU {found.iou:.3f}, {seconds[-1]:.1f} s")
     model.train(was_training)
-    accuracy = torch.cat(accuracies)
+    accuracy, pose = torch.cat(accuracies), torch.tensor(errors)
+    success = (pose < 0.5) | (torch.tensor(ious) >= 0.95)
     return {"bit_acc": float(accuracy.mean()), "bit_acc_std": float(accuracy.std()) if count > 1 else 0.0,
-            "registration_iou": float(sum(ious) / len(ious)), "n_meshes": count, "n_views": 1, "size": size}
+            "bit_acc_known_camera": float(torch.cat(known).mean()),
+            "registration_success": float(success.float().mean()), "registration_iou": float(sum(ious) / len(ious)),
+            "pose_error_px": {q: round(float(pose.nanquantile(v)), 3) for q, v in (("median", 0.5), ("p90", 0.9),
+                                                                                 ("max", 1.0))},
+            "seconds_per_picture": sum(seconds) / len(seconds), "n_meshes": count, "n_views": 1, "size": size}

@@ -72,8 +72,9 @@ def jitter_cameras(cameras: Cameras, pixels: float, size: int, generator: torch.
 class RelitResidual:
     """A picture's covered interior pixels next to the original mesh relit to match it: what the
     picture shows (P, 3), what the original predicts there (P, 3), its unlit albedo (P, 3), the
-    texture coordinates (P, 2), material (P,) and picture index (P,) of each pixel, and the `fragments`
-    they were taken from (`keep` (P,) indexes them)."""
+    texture coordinates (P, 2), material (P,) and picture index (P,) of each pixel, the `fragments`
+    they were taken from (`keep` (P,) indexes them), and the fitted lighting: the original with the
+    fitted ambient factors (`relit`) and the point `lights`."""
 
     seen: torch.Tensor
     expected: torch.Tensor
@@ -83,6 +84,8 @@ class RelitResidual:
     image_index: torch.Tensor
     keep: torch.Tensor
     fragments: object
+    relit: MeshBatch
+    lights: object
 
 
 def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> RelitResidual:
@@ -106,7 +109,7 @@ def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> Re
         pick = lambda values: values.index_select(0, keep)  # noqa: E731
         return RelitResidual(pick(pixels_at(image, fragments)).to(image), pick(pixels_at(relit_render.image, fragments)).to(image),
                              pick(albedo).to(image), pick(uv).to(image), pick(per_fragment(mesh.face_material, fragments)),
-                             pick(fragments.batch), keep, fragments)
+                             pick(fragments.batch), keep, fragments, relit, lights)
 
 
 def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, reference: torch.Tensor | None = None,
