@@ -201,6 +201,8 @@ def test_match_pvalue_is_uniform_without_a_mark_and_tiny_with_the_message():
     assert match_pvalue(z, 1 - bits) > 1 - FPR
     with pytest.raises(MeshsealError, match="expected 32 bits, but the model reads 64"):
         match_pvalue(z, bits[:32])
+    with pytest.raises(MeshsealError, match="expected bits must be 0 or 1"):
+        match_pvalue(z, bits * 2)
 
 
 def test_pooling_keeps_the_null_and_adds_up_the_mark():

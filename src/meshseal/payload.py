@@ -281,6 +281,8 @@ def match_pvalue(z, expected_bits) -> float | np.ndarray:
             raise MeshsealError("expected bits must be a string of 0 and 1")
         expected_bits = [int(bit) for bit in expected_bits]
     expected = _as_soft(expected_bits)
+    if not np.isin(expected, (0.0, 1.0)).all():
+        raise MeshsealError("expected bits must be 0 or 1")
     if expected.shape != values.shape[-1:]:
         raise MeshsealError(f"expected {expected.size} bits, but the model reads {values.shape[-1]}")
     statistic = (values * (2.0 * expected - 1.0)).sum(-1) / math.sqrt(values.shape[-1])
