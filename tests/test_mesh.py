@@ -297,7 +297,7 @@ def test_save_is_atomic(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(mesh_io.os, "replace", failing_replace)
-    with pytest.raises(OSError):
+    with pytest.raises(MeshError, match="disk full"):
         save(mesh, target)
     assert target.read_bytes() == b"previous content"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny_out.glb"]

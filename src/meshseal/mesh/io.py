@@ -14,6 +14,7 @@ import io
 import json
 import os
 import re
+import stat
 import sys
 import tempfile
 import warnings
@@ -366,18 +367,72 @@ def _export(scene, file_type: str, stem: str) -> dict[str, bytes]:
     return {f"{stem}.{file_type}": data if isinstance(data, bytes) else data.encode()}
 
 
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+def check_output(path: Path, inputs=()) -> None:
+    """Refuse, before any work, an output path a careful tool must not write: one that is an input,
+    resolves to one (a symbolic link) or is a hard link to one (same device and inode); an existing
+    folder or special file (a pipe, a device: replacing it is never meant); a path under a file; a
+    folder that cannot be written. A missing folder is fine: `atomic_write` creates it."""
+    path = Path(path)
+    for source in inputs:
+        try:
+            same = path.resolve() == Path(source).resolve() or os.path.samefile(path, source)
+        except OSError:  # the output does not exist yet (or the input is gone): not the same file
+            same = False
+        if same:
+            raise MeshError(f"{path}: refusing to overwrite an input file ({Path(source).name}); "
+                            f"choose another output path")
+    if os.path.lexists(path):
+        mode = os.stat(path).st_mode if os.path.exists(path) else os.lstat(path).st_mode
+        if stat.S_ISDIR(mode):
+            raise MeshError(f"{path}: is a directory")
+        if not stat.S_ISREG(mode) and not stat.S_ISLNK(mode):
+            raise MeshError(f"{path}: exists and is not a regular file; refusing to replace it")
+    folder = path.parent
+    while not folder.exists():
+        if os.path.lexists(folder):
+            raise MeshError(f"{folder}: is a broken symbolic link, cannot create the output folder")
+        folder = folder.parent
+    if not folder.is_dir():
+        raise MeshError(f"{folder}: is not a directory, cannot write {path.name} under it")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise MeshError(f"{folder}: folder is not writable (permission denied)")
+
+
+def atomic_write_files(files: dict[Path, bytes]) -> None:
+    """Write several files all or nothing (as far as a file system allows): each goes to a temporary
+    file in its folder first and is renamed into place only once all are written. Missing folders are
+    created, and removed again if writing fails; no temporary file is left behind."""
+    created, temps, current = [], {}, None
     try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(data)
-        os.replace(temp, path)
-    except BaseException:
-        if os.path.exists(temp):
-            os.unlink(temp)
+        for current in files:
+            missing = [folder for folder in [current.parent, *current.parent.parents] if not folder.exists()]
+            for folder in reversed(missing):
+                folder.mkdir()
+                created.append(folder)
+        for current, data in files.items():
+            handle, temps[current] = tempfile.mkstemp(dir=current.parent, prefix=f".{current.name}.", suffix=".tmp")
+            with os.fdopen(handle, "wb") as stream:
+                stream.write(data)
+        for current, temp in temps.items():
+            os.replace(temp, current)
+    except BaseException as error:
+        for temp in temps.values():
+            if os.path.exists(temp):
+                os.unlink(temp)
+        for folder in reversed(created):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
+        if isinstance(error, OSError):
+            raise MeshError(f"{current}: cannot write: {error.strerror or error}") from None
         raise
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file in the same folder and a rename (see
+    `atomic_write_files`)."""
+    atomic_write_files({Path(path): data})
 
 
 def save(mesh: Mesh, path) -> list[Path]:
@@ -399,12 +454,9 @@ def save(mesh: Mesh, path) -> list[Path]:
         scene = trimesh.Scene(_to_trimesh(mesh))
     files = _export(scene, file_type, path.stem)
     targets = {path.parent / name: data for name, data in files.items()}
-    protected = source.input_files if source is not None else set()
     for target in targets:
-        if target.resolve() in protected:
-            raise MeshError(f"{target}: refusing to overwrite an input file; choose another output path")
-    for target, data in targets.items():
-        atomic_write(target, data)
+        check_output(target, source.input_files if source is not None else ())
+    atomic_write_files(targets)
     return list(targets)
 
 
