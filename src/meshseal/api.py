@@ -207,8 +207,9 @@ class Watermarker:
                     raise MeshsealError(str(error)) from None
                 material.texture = marked_texture[0].permute(1, 2, 0).cpu()
         elif encoder.vertex_encoder is None:
-            raise MeshsealError("the mesh has no texture with UVs to carry the watermark, and this model "
-                                "only marks textures")
+            where = f"{mesh.source.path}: " if mesh.source is not None else ""
+            raise MeshsealError(f"{where}the mesh has no texture with UVs to carry the watermark, and this "
+                                f"model only marks textures")
         elif encoder.texture_encoder is not None:
             print("meshseal: warning: no texture with UVs: only the vertex normals carry the mark", file=sys.stderr)
         if encoder.vertex_encoder is not None:
@@ -276,7 +277,7 @@ class Watermarker:
         tensor = torch.from_numpy(np.ascontiguousarray(pixels)).permute(2, 0, 1)[None].to(self.device)
         camera = None
         if original is not None and camera_text is not None and not register:
-            camera = _camera_from_metadata(camera_text, self.device)
+            camera = _camera_from_metadata(camera_text, self.device, _name(image))
         source, iou = None, None
         if camera is not None:  # the known camera says where the object is: no need to search for it
             from .render import clip_to_screen
@@ -305,7 +306,7 @@ class Watermarker:
                          tuple(float(v) for v in box[0]), source, iou)
 
 
-def _camera_from_metadata(text: str, device):
+def _camera_from_metadata(text: str, device, name: str = "picture"):
     """The camera a `meshseal render` picture carries in its PNG text chunk."""
     import json
 
@@ -313,8 +314,10 @@ def _camera_from_metadata(text: str, device):
 
     try:
         return camera_from_dict(json.loads(text)).to(device)
-    except ValueError:
-        raise MeshsealError("the picture's camera metadata is not valid JSON") from None
+    except (ValueError, RecursionError):
+        raise MeshsealError(f"{name}: the picture's camera metadata is not valid JSON") from None
+    except MeshsealError as error:
+        raise MeshsealError(f"{name}: {error}") from None
 
 
 def load(model: str | None = None, device: str | None = None) -> Watermarker:

@@ -516,7 +516,7 @@ class _Gltf:
             if outside.any():
                 self.fail(f"{what} data lie outside the accessor's declared {key} (corrupt data or offsets)")
 
-    def images(self, base: Path | None) -> list[tuple[str, bytes | None]]:
+    def images(self, base: Path) -> list[tuple[str, bytes | None]]:
         """Each image's (name, encoded bytes); None for an external file that is missing."""
         result = []
         for number, image in enumerate(self.items("images")):
@@ -531,19 +531,23 @@ class _Gltf:
                 self.fail(f"image {number} has neither a bufferView nor a uri")
         return result
 
-    def uri(self, uri: str, what: str, base: Path | None, optional: bool = False) -> bytes | None:
-        """The bytes a uri names, as trimesh reads them: base64 data after 'base64,', else a file in the
-        glTF's folder (regular files only). None for a missing file when `optional`."""
+    def uri(self, uri: str, what: str, base: Path, optional: bool = False) -> bytes | None:
+        """The bytes a uri names, as trimesh reads them: base64 data after 'base64,', else the file of
+        exactly that name in the glTF's folder (regular files only; trimesh would fall back to another
+        file of the same base name). None for a missing file when `optional`."""
         if "base64," in uri:
             try:
                 return base64.b64decode(uri[uri.index("base64,") + 7:], validate=True)
             except (binascii.Error, ValueError):
                 self.fail(f"{what}: malformed base64 data URI")
-        target = find_asset(base, uri) if base is not None else None
-        if target is None:
-            if optional:
-                return None
-            self.fail(f"{what}: file '{uri[:60]}' not found in the glTF's folder")
+        if re.match(r"[A-Za-z][A-Za-z0-9+.-]+:", uri):
+            self.fail(f"{what}: uri '{uri[:60]}' is not a file beside the glTF; only those are read")
+        root = base.resolve()
+        target = (root / uri.strip()).resolve()
+        if not target.is_relative_to(root):
+            self.fail(f"{what}: uri '{uri[:60]}' leads outside the glTF's folder; only files in it are read")
+        if optional and not os.path.lexists(target):
+            return None
         return read_regular(target, f"file ({what} of {self.path.name})")
 
 
