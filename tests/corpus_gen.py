@@ -12,10 +12,10 @@ Run `python tests/corpus_gen.py DIR` to write it and print the case counts per c
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
-import shutil
 import struct
 import sys
 import zlib
@@ -141,6 +141,8 @@ class Corpus:
         self.root = Path(root)
         self.runs: list[dict] = []
         self.cases: dict[str, tuple[str, bool]] = {}  # case -> (class, hostile)
+        self.reference: Path | None = None  # the valid render the pictures are made from
+        self.odd_pictures: dict[str, bytes] = {}  # valid pictures in other formats (see test_corpus.py)
 
     def folder(self, group: str, case: str) -> Path:
         folder = self.root / group / case
@@ -515,8 +517,9 @@ def _picture_cases(c: Corpus, base: dict) -> None:
 
     folder = c.files("pictures", "_mesh", {"m.glb": base["glb"]})
     mesh = folder / "m.glb"
-    render = c.root / "_render" / "view.png"
-    assert main(["render", str(mesh), "-o", str(render), "--width", "96", "--height", "96"]) == 0
+    render = c.reference = c.root / "_render" / "view.png"
+    with contextlib.redirect_stdout(io.StringIO()):  # render prints the paths it writes
+        assert main(["render", str(mesh), "-o", str(render), "--width", "96", "--height", "96"]) == 0
     source = Image.open(render)
     source.load()
     camera = source.info[CAMERA_KEY]
@@ -667,4 +670,3 @@ if __name__ == "__main__":
         print(f"{number:4d}  {cls}")
     print(f"{sum(1 for _, hostile in built.cases.values() if hostile):4d}  hostile inputs, "
           f"{len(built.runs)} runs")
-    shutil.rmtree(built.root / "_render", ignore_errors=True)
