@@ -199,3 +199,44 @@ def test_console_script(tmp_path):
     assert bad.returncode == 2
     assert bad.stderr.count("\n") == 1 and bad.stderr.startswith("meshseal: error: ")
     assert "Traceback" not in bad.stderr
+
+
+def test_output_folder_is_created_and_removed_again_on_failure(tmp_path, capsys, monkeypatch):
+    # Policy: a missing output folder is created (like mkdir -p); if writing fails, it is removed again.
+    out = tmp_path / "new" / "deeper" / "view.png"
+    assert run(capsys, "render", FIXTURES / "cube.off", "-o", out, "--width", 16, "--height", 16)[0] == 0
+    assert out.is_file()
+    from meshseal.mesh import io as mesh_io
+
+    def failing_replace(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(mesh_io.os, "replace", failing_replace)
+    code, _, err = run(capsys, "render", FIXTURES / "cube.off", "-o", tmp_path / "other" / "v.png", "--width", 16,
+                       "--height", 16)
+    assert_one_line_error(code, err)
+    assert "v.png: cannot write: No space left on device" in err
+    assert not (tmp_path / "other").exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_output_folder_is_one_line_error(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    try:
+        code, _, err = run(capsys, "render", FIXTURES / "cube.off", "-o", locked / "v.png")
+        assert_one_line_error(code, err)
+        assert "not writable" in err and not list(locked.iterdir())
+    finally:
+        locked.chmod(0o755)
+
+
+def test_output_hard_linked_to_the_input_is_refused(tmp_path, capsys):
+    glb = tmp_path / "bunny.glb"
+    shutil.copy(FIXTURES / "bunny.glb", glb)
+    os.link(glb, tmp_path / "link.glb")
+    code, _, err = run(capsys, "embed", glb, "-o", tmp_path / "link.glb", "--message", "01" * 32)
+    assert_one_line_error(code, err)
+    assert "refusing to overwrite an input file" in err
+    assert glb.read_bytes() == (FIXTURES / "bunny.glb").read_bytes()

@@ -155,6 +155,60 @@ def test_bad_input_is_one_line_mesh_error(case, tmp_path):
     assert str(path.name) in message
 
 
+CUBE_OFF = (FIXTURES / "cube.off").read_text()
+ASCII_PLY = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+             "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+
+# Issue #14: files trimesh used to read silently, mangled. case -> (file, what the one-line error says)
+SILENTLY_MANGLED = {
+    "obj_index_zero": ("z.obj", TRIANGLE + "f 0 1 2\n", "index 0 (OBJ indices start at 1)"),
+    "obj_vt_past_end": ("t.obj", TRIANGLE + "vt 0 0\nf 1/1 2/1 3/2\n", "vt index 2, but the file has only 1"),
+    "obj_vn_past_end": ("n.obj", TRIANGLE + "vn 0 0 1\nf 1//1 2//1 3//4\n", "vn index 4"),
+    "off_cut_in_face": ("cut.off", CUBE_OFF.rstrip()[:-2], "line 17: a face needs"),
+    "off_counts_promise_more": ("more.off", CUBE_OFF.replace("8 6 0", "8 7 0"), "promises 8 vertices and 7 faces"),
+    "ply_cut_in_face": ("cut.ply", ASCII_PLY[:-3], "a 'face' record has 3 values, its properties need 4"),
+    "ply_counts_promise_more": ("more.ply", ASCII_PLY.replace("face 1", "face 2"), "promises 2 'face' records"),
+    "ply_format_no_format": ("fmt.ply", ASCII_PLY.replace("ascii 1.0", "banana 1.0"), "names no PLY format"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SILENTLY_MANGLED))
+def test_mangled_structure_is_a_one_line_error(case, tmp_path):
+    name, text, expected = SILENTLY_MANGLED[case]
+    with pytest.raises(MeshError) as info:
+        load(_write(tmp_path / name, text))
+    assert str(info.value).startswith(f"{tmp_path / name}: ") and expected in str(info.value)
+
+
+def test_glb_overwritten_json_and_negative_count(tmp_path):
+    import json
+    import struct
+
+    data = (FIXTURES / "bunny.glb").read_bytes()
+    length = struct.unpack_from("<I", data, 12)[0]
+    broken = bytearray(data)
+    broken[60:63] = b"\x00#\x00"
+    with pytest.raises(MeshError, match="JSON chunk is not valid JSON"):
+        load(_write(tmp_path / "json.glb", bytes(broken)))
+    document = json.loads(data[20:20 + length])
+    document["accessors"][1]["count"] = -4
+    body = json.dumps(document).encode()
+    body += b" " * (-len(body) % 4)
+    rest = data[20 + length:]
+    glb = b"glTF" + struct.pack("<II", 2, 20 + len(body) + len(rest)) + struct.pack("<I4s", len(body), b"JSON") + body + rest
+    with pytest.raises(MeshError, match="accessor 1 count is -4"):
+        load(_write(tmp_path / "count.glb", glb))
+
+
+def test_texture_named_by_a_pipe_is_refused_at_once(tmp_path):
+    folder = tmp_path / "teapot"
+    shutil.copytree(FIXTURES / "teapot", folder)
+    (folder / "teapot.jpg").unlink()
+    os.mkfifo(folder / "teapot.jpg")  # reading it would block forever
+    with pytest.raises(MeshError, match="is a named pipe, not a regular texture file"):
+        load(folder / "teapot.obj")
+
+
 # ---------------------------------------------------------------- saving
 
 
@@ -297,7 +351,7 @@ def test_save_is_atomic(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(mesh_io.os, "replace", failing_replace)
-    with pytest.raises(OSError):
+    with pytest.raises(MeshError, match="disk full"):
         save(mesh, target)
     assert target.read_bytes() == b"previous content"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny_out.glb"]

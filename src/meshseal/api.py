@@ -90,38 +90,82 @@ class Detection:
         return result
 
 
+MIN_PICTURE_SIDE = 16  # smaller pictures cannot show the object's texture; refused at once
+MIN_OBJECT_PIXELS = 64  # fewer object pixels than this: nothing to read
+_HIGH_DEPTH = {"I": 65535.0, "I;16": 65535.0, "I;16B": 65535.0, "I;16L": 65535.0, "I;16N": 65535.0, "F": 1.0}
+
+
+def _name(image) -> str:
+    return str(image) if isinstance(image, (str, Path)) else "picture"
+
+
+def _pil_to_arrays(image, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Any PIL picture -> (H, W, 3) float32 RGB in [0, 1] and its alpha (H, W) in [0, 1] (None if it has
+    none), converted once: EXIF rotation applied, 16-bit and float grey scaled by their range, grey,
+    palette, CMYK, YCbCr, ... through PIL's own conversions."""
+    from PIL import ImageOps
+
+    try:
+        image = ImageOps.exif_transpose(image)
+    except Exception:  # a broken EXIF block: keep the pixels as stored
+        pass
+    if image.mode in _HIGH_DEPTH:
+        grey = np.asarray(image, dtype=np.float64) / _HIGH_DEPTH[image.mode]
+        if not np.isfinite(grey).all():
+            raise MeshsealError(f"{name}: picture contains NaN or infinite values")
+        rgb = np.repeat(np.clip(grey, 0.0, 1.0)[..., None], 3, axis=-1).astype(np.float32)
+        return rgb, None
+    has_alpha = "A" in image.getbands() or "transparency" in image.info
+    try:
+        converted = image.convert("RGBA") if has_alpha else image.convert("RGB")
+    except ValueError:  # modes PIL converts only through RGB (e.g. LAB, HSV)
+        try:
+            converted = image.convert("RGB")
+        except ValueError:
+            raise MeshsealError(f"{name}: picture mode {image.mode} cannot be converted to RGB") from None
+    array = np.asarray(converted, dtype=np.float32) / 255.0
+    return array[..., :3], (array[..., 3] if array.shape[-1] == 4 else None)
+
+
 def _load_image(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
     """Path / PIL image / array / tensor -> (H, W, 3) float in [0, 1], an alpha mask if it has one, and
-    the camera metadata text if the picture carries one (see mesh.io.image_bytes)."""
-    from PIL import Image, UnidentifiedImageError
+    the camera metadata text if the picture carries one (see mesh.io.image_bytes).
+
+    A path must name a regular file holding a picture PIL reads, within PIL's decompression-bomb pixel
+    limit, at least MIN_PICTURE_SIDE pixels a side; anything else is a MeshsealError naming it.
+    """
+    from PIL import Image
 
     from .mesh.io import CAMERA_KEY
+    from .mesh.validate import read_image
 
+    name = _name(image)
     if isinstance(image, (str, Path)):
-        path = Path(image)
-        if not path.is_file():
-            raise MeshsealError(f"{path}: no such image file")
-        try:
-            with Image.open(path) as opened:
-                opened.load()
-                image = opened.copy()
-        except (UnidentifiedImageError, OSError) as error:
-            raise MeshsealError(f"{path}: not a readable image ({str(error).splitlines()[0][:120]})") from None
+        image = read_image(Path(image), name, MIN_PICTURE_SIDE)
     if isinstance(image, Image.Image):
-        has_alpha = image.mode in ("RGBA", "LA") or (image.mode == "P" and "transparency" in image.info)
-        rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
-        alpha = rgba[..., 3] > 0.5 if has_alpha and rgba[..., 3].min() < 0.5 else None
-        return rgba[..., :3], alpha, image.info.get(CAMERA_KEY)
-    if torch.is_tensor(image):
-        image = image.detach().cpu().numpy()
-        if image.ndim == 3 and image.shape[0] in (3, 4) and image.shape[-1] not in (3, 4):
-            image = image.transpose(1, 2, 0)
-    array = np.asarray(image)
-    if array.ndim != 3 or array.shape[-1] not in (3, 4):
-        raise MeshsealError(f"expected an (H, W, 3) or (H, W, 4) image, got shape {array.shape}")
-    array = array.astype(np.float32) / (255.0 if array.dtype == np.uint8 else 1.0)
-    alpha = array[..., 3] > 0.5 if array.shape[-1] == 4 and array[..., 3].min() < 0.5 else None
-    return array[..., :3], alpha, None
+        camera_text = image.info.get(CAMERA_KEY)
+        pixels, alpha = _pil_to_arrays(image, name)
+        camera_text = camera_text if isinstance(camera_text, str) else None
+    else:
+        if torch.is_tensor(image):
+            image = image.detach().cpu().numpy()
+            if image.ndim == 3 and image.shape[0] in (3, 4) and image.shape[-1] not in (3, 4):
+                image = image.transpose(1, 2, 0)
+        array = np.asarray(image)
+        if array.ndim != 3 or array.shape[-1] not in (3, 4) or not (array.dtype == np.uint8 or
+                                                                    np.issubdtype(array.dtype, np.floating)):
+            raise MeshsealError(f"expected an (H, W, 3) or (H, W, 4) uint8 or float image, got shape "
+                                f"{array.shape} ({array.dtype})")
+        array = array.astype(np.float32) / (255.0 if array.dtype == np.uint8 else 1.0)
+        if not np.isfinite(array).all():
+            raise MeshsealError(f"{name}: picture contains NaN or infinite values")
+        pixels, alpha, camera_text = array[..., :3], (array[..., 3] if array.shape[-1] == 4 else None), None
+    height, width = pixels.shape[:2]
+    if min(height, width) < MIN_PICTURE_SIDE:
+        raise MeshsealError(f"{name}: picture is {width}x{height} pixels, too small (at least "
+                            f"{MIN_PICTURE_SIDE} pixels a side)")
+    mask = alpha > 0.5 if alpha is not None and alpha.min() < 0.5 else None
+    return pixels, mask, camera_text
 
 
 class Watermarker:
@@ -163,8 +207,9 @@ class Watermarker:
                     raise MeshsealError(str(error)) from None
                 material.texture = marked_texture[0].permute(1, 2, 0).cpu()
         elif encoder.vertex_encoder is None:
-            raise MeshsealError("the mesh has no texture with UVs to carry the watermark, and this model "
-                                "only marks textures")
+            where = f"{mesh.source.path}: " if mesh.source is not None else ""
+            raise MeshsealError(f"{where}the mesh has no texture with UVs to carry the watermark, and this "
+                                f"model only marks textures")
         elif encoder.texture_encoder is not None:
             print("meshseal: warning: no texture with UVs: only the vertex normals carry the mark", file=sys.stderr)
         if encoder.vertex_encoder is not None:
@@ -223,10 +268,16 @@ class Watermarker:
         pixels, alpha, camera_text = _load_image(image)
         if alpha is not None:
             pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
+            mask, background = alpha, np.zeros(3, dtype=np.float32)
+        else:
+            mask, background = object_mask(pixels)
+        if int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
+            what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"
+            raise MeshsealError(f"{_name(image)}: no object found (the picture is {what})")
         tensor = torch.from_numpy(np.ascontiguousarray(pixels)).permute(2, 0, 1)[None].to(self.device)
         camera = None
         if original is not None and camera_text is not None and not register:
-            camera = _camera_from_metadata(camera_text, self.device)
+            camera = _camera_from_metadata(camera_text, self.device, _name(image))
         source, iou = None, None
         if camera is not None:  # the known camera says where the object is: no need to search for it
             from .render import clip_to_screen
@@ -236,10 +287,6 @@ class Watermarker:
             box = box_from_points(corners.reshape(-1, 2), height, width)
             logits, source = read_bits(self.model, original, tensor.clamp(0, 1), camera)[0].cpu(), "metadata"
         else:
-            if alpha is not None:
-                mask, background = alpha, np.zeros(3, dtype=np.float32)
-            else:
-                mask, background = object_mask(pixels)
             box = boxes_from_mask(torch.from_numpy(mask)[None])
             background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)
             if original is None:
@@ -259,7 +306,7 @@ class Watermarker:
                          tuple(float(v) for v in box[0]), source, iou)
 
 
-def _camera_from_metadata(text: str, device):
+def _camera_from_metadata(text: str, device, name: str = "picture"):
     """The camera a `meshseal render` picture carries in its PNG text chunk."""
     import json
 
@@ -267,8 +314,10 @@ def _camera_from_metadata(text: str, device):
 
     try:
         return camera_from_dict(json.loads(text)).to(device)
-    except ValueError:
-        raise MeshsealError("the picture's camera metadata is not valid JSON") from None
+    except (ValueError, RecursionError):
+        raise MeshsealError(f"{name}: the picture's camera metadata is not valid JSON") from None
+    except MeshsealError as error:
+        raise MeshsealError(f"{name}: {error}") from None
 
 
 def load(model: str | None = None, device: str | None = None) -> Watermarker:

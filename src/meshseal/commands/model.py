@@ -152,11 +152,15 @@ def write_preview(path: Path, original, marked, renders) -> None:
 def run_embed(args) -> int:
     from ..api import load
     from ..mesh import load as load_mesh, save
+    from ..mesh.io import check_output
 
     watermarker = load(args.model)
     mesh = load_mesh(args.input, up_axis=args.up)
-    if args.output.resolve() in (mesh.source.input_files if mesh.source else {args.input.resolve()}):
-        raise MeshsealError(f"{args.output}: refusing to overwrite an input file; choose another output path")
+    check_output(args.output, mesh.source.input_files)
+    if args.preview is not None:
+        if args.preview.resolve() == args.output.resolve():
+            raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
+        check_output(args.preview, mesh.source.input_files)
     marked = watermarker.embed(mesh, args.message, strength=args.strength)
     written = save(marked, args.output)
     report, renders = embed_report(mesh, marked, args.views)

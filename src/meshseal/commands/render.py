@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from ..mesh import load, normalize, to_z_up
-    from ..mesh.io import atomic_write, image_bytes
+    from ..mesh.io import atomic_write, check_output, image_bytes
     from ..render import MeshRenderer, lights_at
 
     output: Path = args.output
@@ -89,10 +89,7 @@ def run(args: argparse.Namespace) -> int:
     protected = set(mesh.source.input_files) if mesh.source is not None else set()
     protected.add(Path(args.mesh).resolve())
     for path in paths:
-        if path.resolve() in protected:
-            raise MeshsealError(f"{path}: refusing to overwrite an input file; choose another output path")
-        if path.is_dir():
-            raise MeshsealError(f"{path}: is a directory")
+        check_output(path, protected)
     mesh = normalize(to_z_up(mesh))
     cameras = _cameras(args, torch)
     lights = lights_at(torch.tensor([args.light], dtype=torch.float32).expand(len(cameras), 3))

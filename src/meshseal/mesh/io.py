@@ -14,6 +14,7 @@ import io
 import json
 import os
 import re
+import stat
 import sys
 import tempfile
 import warnings
@@ -27,9 +28,12 @@ from PIL import Image
 from ..errors import MeshError
 from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, Material, Mesh
 from .preprocess import vertex_normals
+from .validate import (check_glb, check_gltf, check_images, check_obj, check_off, check_ply, check_stl,
+                       find_asset, read_regular, regular_file)
 
 SUPPORTED = {".obj": "obj", ".glb": "glb", ".gltf": "gltf", ".ply": "ply", ".off": "off", ".stl": "stl"}
 TEXT_FORMATS = {"obj", "off", "gltf"}
+STRUCTURE_CHECKS = {"glb": check_glb, "gltf": check_gltf, "ply": check_ply, "off": check_off, "stl": check_stl}
 UP_AXIS = {"obj": "y", "glb": "y", "gltf": "y", "ply": "z", "off": "z", "stl": "z"}
 
 
@@ -68,25 +72,32 @@ def _file_type(path: Path) -> str:
     return SUPPORTED[suffix]
 
 
-def _missing_obj_textures(path: Path) -> tuple[list[str], set[Path]]:
-    """Texture files named by the OBJ's MTL libraries that do not exist, and the ones that do."""
-    missing, present = [], set()
-    try:
-        text = path.read_text(errors="replace")
-    except OSError:
-        return missing, present
+def _obj_references(path: Path, data: bytes) -> tuple[list[str], set[Path], list[tuple[str, Path]]]:
+    """What an OBJ's MTL libraries name, resolved as trimesh resolves them: the names not found, the
+    files found, and the diffuse textures (map_Kd, the ones trimesh reads) to decode-check. A referenced
+    file that is not a regular file (a pipe, a device) is an error: reading it could block forever."""
+    missing, present, textures = [], set(), []
+    text = data.decode("utf-8", "replace")
     for mtl_name in re.findall(r"^\s*mtllib\s+(.+?)\s*$", text, flags=re.M):
-        mtl_path = path.parent / mtl_name
-        if not mtl_path.is_file():
+        mtl_path = find_asset(path.parent, mtl_name)
+        if mtl_path is None:
             missing.append(mtl_name)
             continue
-        present.add(mtl_path.resolve())
-        for line in mtl_path.read_text(errors="replace").splitlines():
+        present.add(mtl_path)
+        for line in read_regular(mtl_path, "material file").decode("utf-8", "replace").splitlines():
             fields = line.strip().split()
-            if fields and fields[0].lower().startswith("map_"):
-                image = mtl_path.parent / fields[-1]
-                (present.add(image.resolve()) if image.is_file() else missing.append(fields[-1]))
-    return missing, present
+            if len(fields) < 2 or not fields[0].lower().startswith("map_"):
+                continue
+            name = line.strip()[len(fields[0]):].strip() if fields[0].lower() == "map_kd" else fields[-1]
+            image = find_asset(mtl_path.parent, name)
+            if image is None:
+                missing.append(name)
+                continue
+            regular_file(image, "texture file")
+            present.add(image)
+            if fields[0].lower() == "map_kd":
+                textures.append((f"{mtl_path.parent / name}", image))
+    return missing, present, textures
 
 
 def _image_to_tensor(image) -> torch.Tensor | None:
@@ -154,20 +165,25 @@ def load(path, up_axis: str | None = None) -> Mesh:
 
     path = Path(path)
     file_type = _file_type(path)
-    if not path.is_file():
-        raise MeshError(f"{path}: no such file")
-    if path.stat().st_size == 0:
+    data = read_regular(path, "mesh file")
+    if not data:
         raise MeshError(f"{path}: file is empty")
-    if file_type in TEXT_FORMATS:
-        with open(path, "rb") as stream:
-            if b"\x00" in stream.read(1 << 16):
-                raise MeshError(f"{path}: binary data, not a text {file_type.upper()} file")
+    if file_type in TEXT_FORMATS and b"\x00" in data[:1 << 16]:
+        raise MeshError(f"{path}: binary data, not a text {file_type.upper()} file")
     input_files = {path.resolve()}
+    images: list = []
     if file_type == "obj":
-        missing, present = _missing_obj_textures(path)
+        check_obj(path, data)
+        missing, present, images = _obj_references(path, data)
         input_files |= present
         for name in missing:
             _warn(f"{path}: texture or material file '{name}' not found; using the flat diffuse colour")
+    elif file_type in STRUCTURE_CHECKS:
+        images = STRUCTURE_CHECKS[file_type](path, data) or []
+        for name, image in images:
+            if image is None:
+                _warn(f"{name} not found; using the flat diffuse colour")
+    check_images(images)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -176,6 +192,8 @@ def load(path, up_axis: str | None = None) -> Mesh:
         raise
     except Exception as error:  # trimesh raises many kinds on corrupt input
         detail = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        if "unexpected length" in detail:  # trimesh's binary PLY length check
+            detail = "the binary data's length does not match the header's element counts (cut off?)"
         if isinstance(error, ModuleNotFoundError) and error.name == "charset_normalizer":
             detail = "not UTF-8 text (install charset-normalizer to read other text encodings)"
         raise MeshError(f"{path}: cannot read as {file_type.upper()}: {detail[:200]}") from None
@@ -349,18 +367,72 @@ def _export(scene, file_type: str, stem: str) -> dict[str, bytes]:
     return {f"{stem}.{file_type}": data if isinstance(data, bytes) else data.encode()}
 
 
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+def check_output(path: Path, inputs=()) -> None:
+    """Refuse, before any work, an output path a careful tool must not write: one that is an input,
+    resolves to one (a symbolic link) or is a hard link to one (same device and inode); an existing
+    folder or special file (a pipe, a device: replacing it is never meant); a path under a file; a
+    folder that cannot be written. A missing folder is fine: `atomic_write` creates it."""
+    path = Path(path)
+    for source in inputs:
+        try:
+            same = path.resolve() == Path(source).resolve() or os.path.samefile(path, source)
+        except OSError:  # the output does not exist yet (or the input is gone): not the same file
+            same = False
+        if same:
+            raise MeshError(f"{path}: refusing to overwrite an input file ({Path(source).name}); "
+                            f"choose another output path")
+    if os.path.lexists(path):
+        mode = os.stat(path).st_mode if os.path.exists(path) else os.lstat(path).st_mode
+        if stat.S_ISDIR(mode):
+            raise MeshError(f"{path}: is a directory")
+        if not stat.S_ISREG(mode) and not stat.S_ISLNK(mode):
+            raise MeshError(f"{path}: exists and is not a regular file; refusing to replace it")
+    folder = path.parent
+    while not folder.exists():
+        if os.path.lexists(folder):
+            raise MeshError(f"{folder}: is a broken symbolic link, cannot create the output folder")
+        folder = folder.parent
+    if not folder.is_dir():
+        raise MeshError(f"{folder}: is not a directory, cannot write {path.name} under it")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise MeshError(f"{folder}: folder is not writable (permission denied)")
+
+
+def atomic_write_files(files: dict[Path, bytes]) -> None:
+    """Write several files all or nothing (as far as a file system allows): each goes to a temporary
+    file in its folder first and is renamed into place only once all are written. Missing folders are
+    created, and removed again if writing fails; no temporary file is left behind."""
+    created, temps, current = [], {}, None
     try:
-        with os.fdopen(handle, "wb") as stream:
-            stream.write(data)
-        os.replace(temp, path)
-    except BaseException:
-        if os.path.exists(temp):
-            os.unlink(temp)
+        for current in files:
+            missing = [folder for folder in [current.parent, *current.parent.parents] if not folder.exists()]
+            for folder in reversed(missing):
+                folder.mkdir()
+                created.append(folder)
+        for current, data in files.items():
+            handle, temps[current] = tempfile.mkstemp(dir=current.parent, prefix=f".{current.name}.", suffix=".tmp")
+            with os.fdopen(handle, "wb") as stream:
+                stream.write(data)
+        for current, temp in temps.items():
+            os.replace(temp, current)
+    except BaseException as error:
+        for temp in temps.values():
+            if os.path.exists(temp):
+                os.unlink(temp)
+        for folder in reversed(created):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
+        if isinstance(error, OSError):
+            raise MeshError(f"{current}: cannot write: {error.strerror or error}") from None
         raise
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file in the same folder and a rename (see
+    `atomic_write_files`)."""
+    atomic_write_files({Path(path): data})
 
 
 def save(mesh: Mesh, path) -> list[Path]:
@@ -382,12 +454,9 @@ def save(mesh: Mesh, path) -> list[Path]:
         scene = trimesh.Scene(_to_trimesh(mesh))
     files = _export(scene, file_type, path.stem)
     targets = {path.parent / name: data for name, data in files.items()}
-    protected = source.input_files if source is not None else set()
     for target in targets:
-        if target.resolve() in protected:
-            raise MeshError(f"{target}: refusing to overwrite an input file; choose another output path")
-    for target, data in targets.items():
-        atomic_write(target, data)
+        check_output(target, source.input_files if source is not None else ())
+    atomic_write_files(targets)
     return list(targets)
 
 
