@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 import meshseal
+from meshseal import payload
 from meshseal.framing import object_mask
 from meshseal.mesh import normalize, to_z_up
 from meshseal.pipeline import read_bits, sample_views
@@ -39,6 +40,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.manual_seed(0)
     wm = meshseal.load()
+    seed = payload.key_seed(None)  # embed marks with the public key's pattern
     rows = []
     for name in args.fixtures:
         mesh = meshseal.load_mesh(FIXTURES / TEXTURED[name])
@@ -53,7 +55,7 @@ def main() -> None:
         truth = torch.tensor(bits, dtype=torch.float32)
         for view in range(args.views):
             picture = pictures[view]
-            known = read_bits(wm.model, original, picture[None], cameras[[view]])[0]
+            known = read_bits(wm.model, original, picture[None], cameras[[view]], seed)[0]
             mask, background = object_mask(picture.permute(1, 2, 0).numpy())
             start = time.perf_counter()
             found = register(original, picture, torch.from_numpy(mask), torch.tensor(background, dtype=torch.float32),
@@ -61,7 +63,7 @@ def main() -> None:
             silhouette_error = pose_error(original, cameras[[view]], found.camera, args.size, args.size)
             found.camera = refine_on_texture(original, found.camera, picture[None], torch.from_numpy(mask)[None].float())
             seconds = time.perf_counter() - start
-            registered = read_bits(wm.model, original, picture[None], found.camera)[0]
+            registered = read_bits(wm.model, original, picture[None], found.camera, seed)[0]
             error = pose_error(original, cameras[[view]], found.camera, args.size, args.size)
             row = (name, view, error, found.iou, float(((known > 0).float() == truth).float().mean()),
                    float(((registered > 0).float() == truth).float().mean()), seconds)

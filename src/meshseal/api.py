@@ -65,29 +65,51 @@ def parse_bits(bits, n_bits: int) -> torch.Tensor:
 
 @dataclass
 class Detection:
-    """What the decoder read from one picture.
+    """What detection read from one picture (or, pooled, from several pictures of one asset).
 
-    bits: '0101...'; logits: raw decoder outputs; bit_confidence: per-bit probability that the bit is
-    right (sigmoid of |logit|); confidence: their mean. `box` is the object's square box (cx, cy, half).
+    detected: whether the picture carries a mark under the key, at the false-positive rate
+    `payload.FPR` (None for models without calibrated soft bits); p_value: the chance that a picture
+    without such a mark scores this high (see payload.detection_pvalue / match_pvalue); message: the
+    decoded text or ID, None when not detected or not decodable; bits: the raw hard bits '0101...';
+    soft: the soft bits (matched-filter z, about N(0, 1) each without a mark; learned models: logits);
+    errors_corrected: raw bits the error correction flipped. `box` is the object's square box (cx, cy,
+    half) in the picture; `camera` 'metadata' or 'registered' for informed models.
     """
 
     bits: str
-    logits: list[float]
-    bit_confidence: list[float]
-    confidence: float
-    box: tuple[float, float, float]
-    camera: str | None = None  # informed models: 'metadata' (the picture's own) or 'registered'
-    registration_iou: float | None = None  # silhouette overlap of the registered view
+    soft: list[float]
+    p_value: float | None
+    detected: bool | None
+    message: str | int | None
+    errors_corrected: int | None
+    box: tuple[float, float, float] | None
+    camera: str | None = None
+    registration_iou: float | None = None
+    pictures: int = 1
 
     def to_dict(self) -> dict:
-        result = {"bits": self.bits, "confidence": round(self.confidence, 4),
-                  "bit_confidence": [round(c, 4) for c in self.bit_confidence],
-                  "box": [round(v, 1) for v in self.box]}
+        result = {"detected": self.detected, "p_value": None if self.p_value is None else float(f"{self.p_value:.4g}"),
+                  "message": self.message, "bits": self.bits, "errors_corrected": self.errors_corrected,
+                  "soft": [round(v, 3) for v in self.soft]}
+        if self.box is not None:
+            result["box"] = [round(v, 1) for v in self.box]
         if self.camera is not None:
             result["camera"] = self.camera
         if self.registration_iou is not None:
             result["registration_iou"] = round(self.registration_iou, 4)
+        if self.pictures != 1:
+            result["pictures"] = self.pictures
         return result
+
+
+@dataclass
+class _Reading:
+    """One picture's evidence before the decision: matched-filter cell sums (spread models) or logits."""
+
+    evidence: torch.Tensor
+    box: tuple[float, float, float]
+    camera: str | None
+    registration_iou: float | None
 
 
 MIN_PICTURE_SIDE = 16  # smaller pictures cannot show the object's texture; refused at once
@@ -185,16 +207,28 @@ class Watermarker:
 
     # ------------------------------------------------------------ embed
     @torch.no_grad()
-    def embed(self, mesh: Mesh, bits, strength: float = 1.0) -> Mesh:
-        """A copy of `mesh` carrying `bits` in its textures (and normals/uvs with a vertex encoder).
+    def embed(self, mesh: Mesh, message=None, *, bits=None, key: str | bytes | None = None,
+              strength: float = 1.0) -> Mesh:
+        """A copy of `mesh` carrying `message` (text, an int ID or a `payload.Message`; error-corrected
+        and keyed, see `payload`) or raw `bits` ('0101...' or a sequence of 0/1 of the model's length,
+        no error correction) in its textures (and normals/uvs with a vertex encoder). `key` (None: the
+        public key) keys both the payload and the mark's pattern.
 
         Positions and faces never change. Learned encoders mark textures of any size at the model's
         working resolution and upsample the residual; spread-spectrum models mark at full resolution,
         `strength` times their default amplitude (2: 6 dB louder and more robust; 0.5: quieter).
         """
+        from . import payload
+
         if not 0.0 < strength <= 10.0:
             raise MeshsealError(f"strength must be in (0, 10], got {strength}")
-        message = parse_bits(bits, self.n_bits).to(self.device).unsqueeze(0)
+        if (message is None) == (bits is None):
+            raise MeshsealError("give either a message or raw bits")
+        if bits is None and isinstance(message, (list, tuple, torch.Tensor)):
+            bits, message = message, None  # a sequence of 0/1 is raw bits
+        raw = parse_bits(bits, self.n_bits) if bits is not None else payload.encode(message, key, self.n_bits)
+        message = raw.to(self.device).unsqueeze(0)
+        key_seed = self._key_seed(key)
         marked = mesh.copy()
         textured = [m for m in marked.materials if m.texture is not None]
         encoder = self.model
@@ -202,7 +236,7 @@ class Watermarker:
             for material in textured:
                 texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
                 try:
-                    marked_texture = encoder.mark_texture(texture, message, strength)
+                    marked_texture = encoder.mark_texture(texture, message, strength, key_seed)
                 except ValueError as error:
                     raise MeshsealError(str(error)) from None
                 material.texture = marked_texture[0].permute(1, 2, 0).cpu()
@@ -224,22 +258,79 @@ class Watermarker:
                 marked.uvs = new_uvs[0].cpu()
         return marked
 
+    def _key_seed(self, key) -> int | None:
+        """The keyed pattern's seed (spread-spectrum models; None for learned ones, which have no key)."""
+        from . import payload
+
+        return payload.key_seed(key) if self.calibrated else None
+
+    @property
+    def calibrated(self) -> bool:
+        """True when the model's soft bits are z-scores, N(0, 1) without a mark: detection decisions
+        and p-values need them (spread-spectrum models)."""
+        return self.model.config.decoder == "matched"
+
     # ------------------------------------------------------------ detect
     @torch.no_grad()
-    def detect(self, images, mesh=None, register: bool = False, fov_y: float = 60.0):
-        """Read the message from one picture or a list of pictures (paths, PIL images, arrays, tensors).
+    def detect(self, images, mesh=None, *, key: str | bytes | None = None, expect=None, pool: bool = False,
+               register: bool = False, fov_y: float = 60.0):
+        """Read pictures (paths, PIL images, arrays, tensors; one or a list) of a marked mesh.
 
-        Blind models find the object (alpha channel, else the pixels that differ from the border
-        colour), crop a square around it and resize it to the decoder's framing, so any resolution and
-        framing work. Informed models (`informed`) also need the original `mesh` (a Mesh or a path):
-        they take the picture's camera from its metadata (pictures from `meshseal render`) or, when
-        it has none or `register` is set, find it by registration (assuming a vertical field of view
-        `fov_y`), then un-render the picture onto the mesh's texture space and decode there.
+        Informed models (`informed`, the default) need the original `mesh` (a Mesh or a path): they
+        take each picture's camera from its metadata (pictures from `meshseal render`) or, when it
+        has none or `register` is set, find it by registration (assuming a vertical field of view
+        `fov_y`), then un-render the picture onto the mesh's texture space and read the mark there.
+        Blind models crop the object and decode the picture alone.
+
+        Under `key` (None: the public key) each result says whether a mark is there at the false-
+        positive rate `payload.FPR` (`detected`, `p_value`) and what it says (`message`); `expect`
+        tests one known message instead (the p-value of the match). `pool` decides once for all the
+        pictures (views of one asset), adding their evidence. Returns a Detection for one picture or
+        for a pool, else a list.
         """
         original = self.original(mesh) if self.model.informed else None
         single = not isinstance(images, (list, tuple))
-        results = [self._detect_one(image, original, register, fov_y) for image in ([images] if single else images)]
+        readings = [self.read(image, original, register, fov_y) for image in ([images] if single else images)]
+        if pool:
+            return self.decide(readings, key, expect)
+        results = [self.decide([reading], key, expect) for reading in readings]
         return results[0] if single else results
+
+    def decide(self, readings: list[_Reading], key=None, expect=None) -> Detection:
+        """The decision on the evidence of `read` (several readings: pooled, their evidence added)."""
+        from . import payload
+
+        first = readings[0]
+        extra = {"box": first.box if len(readings) == 1 else None, "camera": first.camera,
+                 "registration_iou": first.registration_iou if len(readings) == 1 else None,
+                 "pictures": len(readings)}
+        evidence = torch.stack([r.evidence for r in readings]).sum(0, keepdim=True)
+        if self.calibrated:
+            from .models.spread import soft_bits
+
+            soft = soft_bits(self.model.texture_encoder, evidence, self._key_seed(key))[0].double()
+        else:
+            soft = evidence[0].double()
+        bits = "".join("1" if v > 0 else "0" for v in soft.tolist())
+        if self.n_bits not in payload.SCHEMAS:
+            return Detection(bits, soft.tolist(), None, None, None, None, **extra)
+        decoded = payload.decode(soft, key)
+        if expect is not None:
+            expected = payload.encode(expect, key, self.n_bits)
+            if self.calibrated:
+                p_value = float(payload.match_pvalue(soft, expected))
+            else:
+                p_value = payload.binomial_pvalue(int(((soft > 0).float() == expected).sum()), self.n_bits)
+            detected = payload.detected(p_value) and decoded.message == _plain(expect)
+            message = decoded.message if detected else None
+        elif self.calibrated:
+            p_value = float(payload.detection_pvalue(soft))
+            detected = payload.detected(p_value)
+            message = decoded.message if detected else None
+        else:  # uncalibrated logits: no decision without an expected message
+            p_value, detected, message = None, None, None
+        return Detection(bits, soft.tolist(), p_value, detected, message,
+                         decoded.errors_corrected if message is not None else None, **extra)
 
     @property
     def informed(self) -> bool:
@@ -262,9 +353,9 @@ class Watermarker:
             raise MeshsealError("the original mesh has no texture with UVs, so it cannot carry this model's mark")
         return MeshBatch.from_mesh(normalize(to_z_up(replace(mesh, source=None))).to(self.device))
 
-    def _detect_one(self, image, original, register: bool, fov_y: float) -> Detection:
-        from .pipeline import read_bits
-
+    def read(self, image, original, register: bool = False, fov_y: float = 60.0) -> _Reading:
+        """One picture's evidence, before any decision (`decide`); `original` from `original()`, None
+        for blind models. A batch reads each picture on its own and keeps going past bad ones."""
         pixels, alpha, camera_text = _load_image(image)
         if alpha is not None:
             pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
@@ -285,25 +376,30 @@ class Watermarker:
             height, width = pixels.shape[:2]
             corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
             box = box_from_points(corners.reshape(-1, 2), height, width)
-            logits, source = read_bits(self.model, original, tensor.clamp(0, 1), camera)[0].cpu(), "metadata"
+            evidence, source = self._evidence(original, tensor.clamp(0, 1), camera), "metadata"
         else:
             box = boxes_from_mask(torch.from_numpy(mask)[None])
             background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)
             if original is None:
                 framed = crop_boxes(tensor, box, self.model.config.frame_size, background_tensor)
-                logits = self.model.decode(framed.clamp(0, 1))[0].cpu()
+                evidence = self.model.decode(framed.clamp(0, 1))[0].cpu()
             else:
                 from .register import register as register_camera
 
                 with torch.enable_grad():
                     found = register_camera(original, tensor[0], torch.from_numpy(mask).to(self.device),
                                             background_tensor[0], fov_y=fov_y)
-                logits = read_bits(self.model, original, tensor.clamp(0, 1), found.camera)[0].cpu()
+                evidence = self._evidence(original, tensor.clamp(0, 1), found.camera)
                 source, iou = "registered", found.iou
-        confidence = torch.sigmoid(logits.abs())
-        bits = "".join("1" if v > 0 else "0" for v in logits.tolist())
-        return Detection(bits, logits.tolist(), confidence.tolist(), float(confidence.mean()),
-                         tuple(float(v) for v in box[0]), source, iou)
+        return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou)
+
+    def _evidence(self, original, picture: torch.Tensor, camera) -> torch.Tensor:
+        """Matched-filter cell sums (spread models) or decoder logits of one picture (1, 3, H, W)."""
+        from .pipeline import read_bits, spread_evidence
+
+        if self.calibrated:
+            return spread_evidence(self.model, original, picture, camera)[0].cpu()
+        return read_bits(self.model, original, picture, camera)[0].cpu()
 
 
 def _camera_from_metadata(text: str, device, name: str = "picture"):
@@ -318,6 +414,11 @@ def _camera_from_metadata(text: str, device, name: str = "picture"):
         raise MeshsealError(f"{name}: the picture's camera metadata is not valid JSON") from None
     except MeshsealError as error:
         raise MeshsealError(f"{name}: {error}") from None
+
+
+def _plain(message):
+    """What `payload.decode` returns for a message given to `encode` (a Message's value, else itself)."""
+    return getattr(message, "value", message)
 
 
 def load(model: str | None = None, device: str | None = None) -> Watermarker:

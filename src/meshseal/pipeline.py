@@ -131,12 +131,21 @@ def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, r
     return unrender(values, found.uv, found.image_index, len(cameras), grid)
 
 
-def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> torch.Tensor:
-    """Informed detection: soft bits (B, N) (logits, or matched-filter z for spread-spectrum models)
-    from pictures (B, 3, H, W) of the original `mesh` taken with `cameras`."""
+def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
+              key_seed: int | None = None) -> torch.Tensor:
+    """Informed detection: soft bits (B, N) (logits, or matched-filter z for spread-spectrum models,
+    with the pattern of `key_seed`) from pictures (B, 3, H, W) of the original `mesh` taken with `cameras`."""
     if model.config.decoder != "matched":
         return model.decode(uv_maps(mesh, image, cameras, model.config.uv_grid))
-    from .models.spread import matched_filter
+    from .models.spread import soft_bits
+
+    return soft_bits(model.texture_encoder, spread_evidence(model, mesh, image, cameras), key_seed)
+
+
+def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
+    original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them)."""
+    from .models.spread import cell_sums
     from .render import sample_textures
 
     found = relit_residual(mesh, image, cameras)
@@ -144,8 +153,8 @@ def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, camer
         fields = [None if t is None else model.texture_encoder.amplitude(t[None])[0] for t in mesh.textures]
         amplitude = sample_textures(fields, found.uv, found.material)
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
-        return matched_filter(model.texture_encoder, found.seen - found.expected, found.uv, amplitude, gain,
-                              found.image_index, len(cameras))
+        return cell_sums(model.texture_encoder, found.seen - found.expected, found.uv, amplitude, gain,
+                         found.image_index, len(cameras))
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,

@@ -21,7 +21,9 @@ from .render import Cameras, MeshBatch, MeshRenderer, fibonacci_directions, ligh
 
 SEARCH_SIZE = 128  # render size of the candidate views and of the refinement
 COMPARE_SIZE = 64  # framed size at which candidates are scored
-WORKING_SIZE = 512  # longest side at which the whole picture is refined on the texture
+LOWPASS = 4.0  # the texture stage compares band-passed pictures: shading (a light misfit) is left out
+WORKING_SIZE = 512
+PICK_SHADING_WEIGHT = 1.0  # how much the texture fit counts when picking among refined candidates  # longest side at which the whole picture is refined on the texture
 DISTANCE = 3.5
 FOV = 60.0
 
@@ -228,12 +230,15 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
             inside = F.max_pool2d(outside, grow, 1, margin)[:, 0] < 0.5
             if int(inside.sum()) < 64:
                 return camera
-            target = gaussian_blur(picture, sigma)
+            weight = inside[:, None].to(picture.dtype)
+            smooth = lambda x, s: gaussian_blur(x * weight, s) / gaussian_blur(weight, s).clamp_min(1e-3)  # noqa: E731
+            band = lambda x: smooth(x, sigma) - smooth(x, LOWPASS * max(sigma, 1.0))  # noqa: E731
+            target = band(picture)
 
             def residual(delta: torch.Tensor) -> torch.Tensor:
                 moved = _moved(camera, delta, height)
                 image = renderer(fit.relit, moved, fit.lights, height, width).image
-                return (gaussian_blur(image, sigma) - target).permute(0, 2, 3, 1)[inside].reshape(-1)
+                return (band(image) - target).permute(0, 2, 3, 1)[inside].reshape(-1)
 
             delta = torch.zeros(6, dtype=picture.dtype)
             for _ in range(iterations):
@@ -247,6 +252,19 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
                 delta = delta + update
             camera = _moved(camera, delta, height)
     return camera
+
+
+def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0) -> list[int]:
+    """The `keep` best-scoring candidates whose view directions are at least `min_angle` degrees apart
+    (the runner-up views of one mode would only repeat the best's refinement)."""
+    chosen: list[int] = []
+    cosine = math.cos(math.radians(min_angle))
+    for index in scores.argsort(descending=True).tolist():
+        if all(float(directions[index] @ directions[other]) < cosine for other in chosen):
+            chosen.append(index)
+            if len(chosen) == keep:
+                break
+    return chosen
 
 
 def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, background: torch.Tensor,
@@ -267,7 +285,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     search = _center_objects(mesh, search, COMPARE_SIZE)
     scores = torch.cat([_scores(mesh, search[list(range(first, min(candidates, first + 32)))], levels[COMPARE_SIZE],
                                 shading_weight)[0] for first in range(0, candidates, 32)])
-    best = scores.topk(min(keep, candidates)).indices.tolist()
+    best = _distinct(scores, directions, keep)
 
     # 2. Refine the best few coarsely, then the best of them finely (blurred silhouettes first: their
     # gradients reach further than the one-pixel band of the splat's).
@@ -277,7 +295,8 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
         for sigma in (3.0, 1.5):
             camera = _refine(mesh, camera, levels[COMPARE_SIZE], sigma, steps, shading_weight, lr)
         refined.append(camera)
-    camera = max(refined, key=lambda c: float(_scores(mesh, c, levels[COMPARE_SIZE], shading_weight)[0][0]))
+    # Symmetric shapes leave several views with the same silhouette: the texture tells them apart.
+    camera = max(refined, key=lambda c: float(_scores(mesh, c, levels[SEARCH_SIZE], PICK_SHADING_WEIGHT)[0][0]))
     for sigma in (1.0, 0.0):
         camera = _refine(mesh, camera, levels[SEARCH_SIZE], sigma, steps, shading_weight, lr)
 

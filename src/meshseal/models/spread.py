@@ -49,25 +49,46 @@ class SpreadSpectrumEncoder(nn.Module):
         super().__init__()
         if colour not in COLOURS:
             raise ValueError(f"mark colour must be one of {', '.join(COLOURS)}")
-        generator = torch.Generator().manual_seed(seed)
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
-        self.register_buffer("assign", torch.randperm(chips * chips, generator=generator) % n_bits)
-        self.register_buffer("sign", torch.randint(0, 2, (chips * chips,), generator=generator).float() * 2 - 1)
+        self.seed = seed
+        assign, sign = self._draw(seed)
+        self.register_buffer("assign", assign)
+        self.register_buffer("sign", sign)
         self.register_buffer("colour", F.normalize(torch.tensor(COLOURS[colour]), dim=0))
+        self._keyed: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def _draw(self, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+        generator = torch.Generator().manual_seed(seed)
+        cells = self.chips * self.chips
+        assign = torch.randperm(cells, generator=generator) % self.n_bits
+        return assign, torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
+
+    def pattern(self, key_seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The cell-to-bit assignment (C*C,) and cell signs (C*C,): the model's own (`key_seed` None,
+        as training uses) or the one a secret key draws (`payload.key_seed`), so that a mark made
+        under one key is noise to the matched filter under any other."""
+        if key_seed is None:
+            return self.assign, self.sign
+        if key_seed not in self._keyed:
+            self._keyed = {key_seed: self._draw((self.seed * 1_000_003 + key_seed) % 2 ** 63)}
+        assign, sign = self._keyed[key_seed]
+        return assign.to(self.assign.device), sign.to(self.sign.device)
 
     def amplitude(self, texture: torch.Tensor) -> torch.Tensor:
         """Unsigned mark field (B, 3, H, W) for textures (B, 3, H, W): the mask times the colour."""
         return activity_mask(texture, self.window, self.floor) * self.colour.to(texture)[None, :, None, None]
 
-    def cells(self, message: torch.Tensor) -> torch.Tensor:
+    def cells(self, message: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
         """Bits (B, N) in {0, 1} -> signed cell values (B, 1, C, C)."""
-        values = self.sign * (2.0 * message - 1.0).index_select(1, self.assign)
+        assign, sign = self.pattern(key_seed)
+        values = sign * (2.0 * message - 1.0).index_select(1, assign)
         return values.reshape(-1, 1, self.chips, self.chips)
 
-    def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
+    def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
+                key_seed: int | None = None) -> torch.Tensor:
         """texture (B, 3, H, W) in [0, 1], message (B, N) -> marked texture. The residual's RMS is
         `strength` times that of the model's target texture PSNR (strength 2: 6 dB louder)."""
-        pattern = F.interpolate(self.cells(message).to(texture), size=texture.shape[-2:], mode="bilinear",
+        pattern = F.interpolate(self.cells(message, key_seed).to(texture), size=texture.shape[-2:], mode="bilinear",
                                 align_corners=False)
         residual = self.amplitude(texture) * pattern
         rms = strength * 10.0 ** (-self.texture_psnr / 20.0)
@@ -75,9 +96,11 @@ class SpreadSpectrumEncoder(nn.Module):
         return (texture + residual).clamp(0.0, 1.0)
 
 
-def matched_filter(encoder: SpreadSpectrumEncoder, residual: torch.Tensor, uv: torch.Tensor,
-                   amplitude: torch.Tensor, gain: torch.Tensor, image_index: torch.Tensor, n_images: int) -> torch.Tensor:
-    """Soft bits z (n_images, N), about N(0, 1) per bit without a mark.
+def cell_sums(encoder: SpreadSpectrumEncoder, residual: torch.Tensor, uv: torch.Tensor, amplitude: torch.Tensor,
+              gain: torch.Tensor, image_index: torch.Tensor, n_images: int) -> torch.Tensor:
+    """The matched filter's evidence per cell (n_images, C*C): the residual projected on the mark's
+    expected colour and amplitude, accumulated into the cells by the embedding's bilinear weights.
+    Cell sums of several pictures of one asset add up (pooling).
 
     residual (P, 3): picture minus the relit original at covered pixels; uv (P, 2) their texture
     coordinates; amplitude (P, 3) the mark's unsigned field there; gain (P,) the shading that scales
@@ -93,8 +116,15 @@ def matched_filter(encoder: SpreadSpectrumEncoder, residual: torch.Tensor, uv: t
     for dx, dy, weight in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
         cell = ((y0 + dy).long() % cells) * cells + (x0 + dx).long() % cells
         sums.index_add_(0, image_index * cells * cells + cell, weight * projected)
-    signed = sums.reshape(n_images, -1) * encoder.sign.to(sums)
-    assign = encoder.assign.to(sums.device)
-    total = signed.new_zeros(n_images, encoder.n_bits).index_add(1, assign, signed)
-    energy = signed.new_zeros(n_images, encoder.n_bits).index_add(1, assign, signed * signed)
+    return sums.reshape(n_images, -1)
+
+
+def soft_bits(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
+    """Cell sums (B, C*C) -> soft bits z (B, N), about N(0, 1) per bit without a mark under this key:
+    z = sum(sign x cell) / sqrt(sum(cell^2)) over the bit's cells."""
+    assign, sign = encoder.pattern(key_seed)
+    signed = sums * sign.to(sums)
+    assign = assign.to(sums.device)
+    total = signed.new_zeros(len(sums), encoder.n_bits).index_add(1, assign, signed)
+    energy = signed.new_zeros(len(sums), encoder.n_bits).index_add(1, assign, signed * signed)
     return total / energy.sqrt().clamp_min(1e-12)

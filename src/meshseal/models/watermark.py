@@ -124,10 +124,12 @@ class WatermarkModel(nn.Module):
             texture = self.texture_encoder(texture, message)
         return normals, uvs, texture
 
-    def mark_texture(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
-        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread mark."""
+    def mark_texture(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
+                     key_seed: int | None = None) -> torch.Tensor:
+        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread mark and
+        `key_seed` picks its keyed pattern."""
         if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
-            return self.texture_encoder(texture, message, strength)
+            return self.texture_encoder(texture, message, strength, key_seed)
         if strength != 1.0:
             raise ValueError("only spread-spectrum models take a strength (learned marks have a trained power)")
         return self.texture_encoder(texture, message)
