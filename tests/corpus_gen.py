@@ -176,7 +176,7 @@ class Corpus:
         self.run(group, case, cls, "render", ["render", path, "-o", "{out}/view.png", "--width", 32, "--height", 32],
                  expect, folder, ("view.png",), hostile)
         embed = embed or expect
-        self.run(group, case, cls, "embed", ["embed", path, "-o", f"{{out}}/marked{suffix}", "--message", MESSAGE,
+        self.run(group, case, cls, "embed", ["embed", path, "-o", f"{{out}}/marked{suffix}", "--bits", MESSAGE,
                                              "--views", 1], embed, folder, (f"marked{suffix}",), hostile)
         return folder
 
@@ -499,7 +499,7 @@ def _mesh_runs(c: Corpus, group: str, case: str, folder: Path, main: str) -> Non
     c.run(group, case, "special file", "info", ["info", path], "error", folder)
     c.run(group, case, "special file", "render", ["render", path, "-o", "{out}/view.png", "--width", 32, "--height", 32],
           "error", folder)
-    c.run(group, case, "special file", "embed", ["embed", path, "-o", f"{{out}}/marked{suffix}", "--message", MESSAGE],
+    c.run(group, case, "special file", "embed", ["embed", path, "-o", f"{{out}}/marked{suffix}", "--bits", MESSAGE],
           "error", folder)
 
 
@@ -594,7 +594,7 @@ def _output_cases(c: Corpus, base: dict) -> None:
     special file or a path under a file is refused before any work; nothing partial is left."""
     glb = base["glb"]
     render = lambda path, out: ["render", path, "-o", out, "--width", 32, "--height", 32]  # noqa: E731
-    embed = lambda path, out: ["embed", path, "-o", out, "--message", MESSAGE, "--views", 1]  # noqa: E731
+    embed = lambda path, out: ["embed", path, "-o", out, "--bits", MESSAGE, "--views", 1]  # noqa: E731
     case = c.files("outputs", "missing_folder", {"m.glb": glb})
     c.run("outputs", "missing_folder", "output path", "render", render(case / "m.glb", "{out}/new/deeper/view.png"), "ok",
           case, ("new/deeper/view.png",), hostile=False)
@@ -627,11 +627,11 @@ def _output_cases(c: Corpus, base: dict) -> None:
     case = c.files("outputs", "preview_hard_link_to_texture", obj)
     os.link(case / "skin.png", case / "shot.png")
     c.run("outputs", "preview_hard_link_to_texture", "output path", "embed",
-          ["embed", case / "sphere.obj", "-o", "{out}/marked.obj", "--message", MESSAGE, "--views", 1, "--preview",
+          ["embed", case / "sphere.obj", "-o", "{out}/marked.obj", "--bits", MESSAGE, "--views", 1, "--preview",
            case / "shot.png"], "error", case)
     case = c.files("outputs", "preview_is_output", {"m.glb": glb})
     c.run("outputs", "preview_is_output", "output path", "embed",
-          ["embed", case / "m.glb", "-o", "{out}/x.glb", "--message", MESSAGE, "--preview", "{out}/x.glb"], "error", case)
+          ["embed", case / "m.glb", "-o", "{out}/x.glb", "--bits", MESSAGE, "--preview", "{out}/x.glb"], "error", case)
     if hasattr(os, "geteuid") and os.geteuid() != 0:  # root writes into read-only folders anyway
         case = c.files("outputs", "read_only_folder", {"m.glb": glb})
         locked = c.root / "_locked"

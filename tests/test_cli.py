@@ -236,7 +236,7 @@ def test_output_hard_linked_to_the_input_is_refused(tmp_path, capsys):
     glb = tmp_path / "bunny.glb"
     shutil.copy(FIXTURES / "bunny.glb", glb)
     os.link(glb, tmp_path / "link.glb")
-    code, _, err = run(capsys, "embed", glb, "-o", tmp_path / "link.glb", "--message", "01" * 32)
+    code, _, err = run(capsys, "embed", glb, "-o", tmp_path / "link.glb", "--bits", "01" * 32)
     assert_one_line_error(code, err)
     assert "refusing to overwrite an input file" in err
     assert glb.read_bytes() == (FIXTURES / "bunny.glb").read_bytes()

@@ -145,7 +145,7 @@ def test_informed_model_trains_and_round_trips_on_the_cli(tmp_path, capsys):
     assert summary["steps"] == 4
     model = str(tmp_path / "run" / "model.safetensors")
     bits = "10110010"
-    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "m.glb"), "--message", bits,
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "m.glb"), "--bits", bits,
                  "--model", model, "--views", "1"]) == 0
     assert main(["render", str(tmp_path / "m.glb"), "-o", str(tmp_path / "v.png"), "--width", "160", "--height", "120"]) == 0
     capsys.readouterr()
@@ -168,7 +168,7 @@ def test_shipped_default_model_round_trips_on_the_bunny(tmp_path, capsys):
     models = {m["name"]: m for m in json.loads(capsys.readouterr().out)}
     assert models["default"]["n_bits"] == 64
     bits = "1011001110001111000010101100101001110110010010111100000111010010"
-    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--message", bits, "--views", "1"]) == 0
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", bits, "--views", "1"]) == 0
     assert main(["render", str(tmp_path / "b.glb"), "-o", str(tmp_path / "v.png"), "--views", "2", "--seed", "0"]) == 0
     capsys.readouterr()
     assert main(["detect", str(tmp_path / "v_0.png"), str(tmp_path / "v_1.png"), "--mesh", str(FIXTURES / "bunny.glb"),

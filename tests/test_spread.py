@@ -54,7 +54,7 @@ def test_matched_filter_reads_the_mark_and_finds_none_in_the_original():
 
 def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, capsys):
     bits = "01" * 32
-    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--message", bits,
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", bits,
                  "--views", "1", "--json", "--preview", str(tmp_path / "sheet.png")]) == 0
     report = json.loads(capsys.readouterr().out)
     assert 39.5 < report["psnr_texture"] < 40.5
@@ -64,5 +64,5 @@ def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, ca
 
     with Image.open(tmp_path / "sheet.png") as sheet:
         assert sheet.size == (768, 512)
-    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--message", bits,
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--bits", bits,
                  "--views", "1", "--strength", "0"]) == 2

@@ -88,7 +88,7 @@ def test_cli_embed_render_detect_eval_round_trip(dataset, tmp_path, capsys):
     capsys.readouterr()
     bits = "10110010"
     assert main(["embed", str(FIXTURES / "multi_material.glb"), "-o", str(tmp_path / "m.glb"),
-                 "--message", bits, "--model", model, "--json", "--views", "2"]) == 0
+                 "--bits", bits, "--model", model, "--json", "--views", "2"]) == 0
     report = json.loads(capsys.readouterr().out)
     for key in ("psnr_texture", "normal_angle_deg", "uv_shift_texels", "psnr_object", "ssim_object", "flip_object",
                 "psnr_frame", "ssim_frame"):
@@ -102,7 +102,9 @@ def test_cli_embed_render_detect_eval_round_trip(dataset, tmp_path, capsys):
     capsys.readouterr()
     assert main(["detect", str(tmp_path / "v.png"), "--model", model, "--json"]) == 0
     result = json.loads(capsys.readouterr().out.splitlines()[0])
-    assert len(result["bits"]) == 8 and set(result["bits"]) <= {"0", "1"} and 0.5 <= result["confidence"] <= 1
+    assert len(result["bits"]) == 8 and set(result["bits"]) <= {"0", "1"} and len(result["soft"]) == 8
+    # A blind learned model of 8 bits has no payload schema and uncalibrated logits: bits, no decision.
+    assert result["detected"] is None and result["p_value"] is None and result["message"] is None
     assert main(["eval", "--data", str(dataset), "--model", model, "--views", "2", "--json"]) == 0
     metrics = json.loads(capsys.readouterr().out)
     for key in ("bit_acc", "bit_acc_std", "psnr_object", "ssim_object", "flip_object", "psnr_render", "ssim_render",
@@ -110,12 +112,12 @@ def test_cli_embed_render_detect_eval_round_trip(dataset, tmp_path, capsys):
         assert key in metrics
     assert metrics["n_views"] == 2 and 0 <= metrics["bit_acc"] <= 1
     # Bad input: wrong message length, not bits, unreadable image, a mesh that can't carry the mark.
-    for argv in (["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--message", "101", "--model", model],
-                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--message", "abcdefgh", "--model", model],
-                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(FIXTURES / "bunny.glb"), "--message", bits, "--model", model],
+    for argv in (["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--bits", "101", "--model", model],
+                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--bits", "abcdefgh", "--model", model],
+                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(FIXTURES / "bunny.glb"), "--bits", bits, "--model", model],
                  ["detect", str(FIXTURES / "LICENSES"), "--model", model],
                  ["eval", "--data", str(tmp_path), "--model", model],
-                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--message", bits, "--model", "nope"]):
+                 ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--bits", bits, "--model", "nope"]):
         capsys.readouterr()
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
@@ -130,5 +132,5 @@ def test_api_detect_accepts_arrays_any_size_and_alpha(dataset, tmp_path):
     picture[100:200, 150:260] = (200, 120, 40, 255)
     for image in (picture, picture[..., :3], Image.fromarray(picture), torch.from_numpy(picture[..., :3]).float() / 255):
         result = wm.detect(image)
-        assert len(result.bits) == 8 and len(result.bit_confidence) == 8
+        assert len(result.bits) == 8 and len(result.soft) == 8
     assert isinstance(wm.detect([picture, picture]), list)

@@ -22,15 +22,21 @@ _Z_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 
 def shipped_models() -> list[dict]:
-    """The models inside the package: name, n_bits, strategy, path."""
+    """The models inside the package: name, raw bits, payload bits (after error correction and header;
+    None without a payload schema), strategy, whether detection needs the original mesh (informed) and
+    whether its soft bits are calibrated z-scores (p-values, decisions), path."""
+    import json
+
+    from .payload import SCHEMAS, payload_bits
+
     models = []
     for path in sorted(WEIGHTS_DIR.glob("*.safetensors")):
-        import json
-
-        metadata = read_metadata(path)
-        config = json.loads(metadata.get("config", "{}"))
-        models.append({"name": path.stem, "n_bits": config.get("n_bits"), "strategy": config.get("strategy"),
-                       "path": str(path)})
+        config = json.loads(read_metadata(path).get("config", "{}"))
+        n_bits, decoder = config.get("n_bits"), config.get("decoder")
+        models.append({"name": path.stem, "n_bits": n_bits,
+                       "payload_bits": payload_bits(n_bits) if n_bits in SCHEMAS else None,
+                       "strategy": config.get("strategy"), "informed": decoder in ("uv", "matched"),
+                       "calibrated": decoder == "matched", "path": str(path)})
     return models
 
 
@@ -315,20 +321,21 @@ class Watermarker:
         if self.n_bits not in payload.SCHEMAS:
             return Detection(bits, soft.tolist(), None, None, None, None, **extra)
         decoded = payload.decode(soft, key)
+        marked = self.calibrated and payload.detected(float(payload.detection_pvalue(soft)))
         if expect is not None:
             expected = payload.encode(expect, key, self.n_bits)
             if self.calibrated:
                 p_value = float(payload.match_pvalue(soft, expected))
             else:
                 p_value = payload.binomial_pvalue(int(((soft > 0).float() == expected).sum()), self.n_bits)
+            # A mark of another message still correlates with this one: the code must read this one.
             detected = payload.detected(p_value) and decoded.message == _plain(expect)
-            message = decoded.message if detected else None
         elif self.calibrated:
             p_value = float(payload.detection_pvalue(soft))
-            detected = payload.detected(p_value)
-            message = decoded.message if detected else None
+            detected = marked
         else:  # uncalibrated logits: no decision without an expected message
-            p_value, detected, message = None, None, None
+            p_value, detected = None, None
+        message = decoded.message if detected or marked else None
         return Detection(bits, soft.tolist(), p_value, detected, message,
                          decoded.errors_corrected if message is not None else None, **extra)
 

@@ -16,7 +16,11 @@ def register(subparsers) -> None:
                                   description="Watermark a mesh: writes the same format, never over the input.")
     embed.add_argument("input", type=Path, help="mesh file (.obj, .glb, .gltf, .ply, .off, .stl)")
     embed.add_argument("-o", "--output", type=Path, required=True, help="output mesh file (same format)")
-    embed.add_argument("--message", required=True, help="the bits to hide: a string of 0/1 of the model's length")
+    what = embed.add_mutually_exclusive_group(required=True)
+    what.add_argument("--message", help="text to hide (UTF-8; the default model holds 4 bytes, error-corrected)")
+    what.add_argument("--id", type=_asset_id, help="an integer asset ID to hide (the default model: 0 to 2^32 - 1)")
+    what.add_argument("--bits", help="raw bits to hide, no error correction (research): 0/1 of the model's length")
+    _key_argument(embed)
     embed.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
     embed.add_argument("--strength", type=float, default=1.0,
                        help="spread-spectrum models: mark amplitude relative to the default (2: 6 dB louder and "
@@ -31,7 +35,7 @@ def register(subparsers) -> None:
 
     detect = subparsers.add_parser("detect", help="read the message from pictures of a marked mesh",
                                    description="Decode each picture (any size, any plain background).")
-    detect.add_argument("images", type=Path, nargs="+", help="image files (PNG, JPEG, ...)")
+    detect.add_argument("images", type=Path, nargs="+", help="image files (PNG, JPEG, ...) or folders of them")
     detect.add_argument("--model", default=None, help="shipped model name or .safetensors path")
     detect.add_argument("--mesh", type=Path, default=None,
                         help="the original (unmarked) mesh file: informed models, like the default, need it")
@@ -39,7 +43,14 @@ def register(subparsers) -> None:
                         help="find the picture's camera by registration even if the picture carries one")
     detect.add_argument("--fov", type=float, default=60.0,
                         help="the picture's vertical field of view in degrees, for registration (default 60)")
-    detect.add_argument("--json", action="store_true", help="one JSON object per image, one per line")
+    _key_argument(detect)
+    expect = detect.add_mutually_exclusive_group()
+    expect.add_argument("--expect", default=None, help="test for this one text message (p-value of the match)")
+    expect.add_argument("--expect-id", type=_asset_id, default=None, help="test for this one asset ID")
+    detect.add_argument("--pool", action="store_true",
+                        help="decide once for all the pictures (views of one asset), adding their evidence")
+    detect.add_argument("--json", "--jsonl", dest="json", action="store_true",
+                        help="one JSON object per picture (or per pool), one per line")
     detect.set_defaults(func=run_detect)
 
     evaluate = subparsers.add_parser("eval", help="measure a model on a dataset split")
@@ -71,6 +82,31 @@ def register(subparsers) -> None:
     models = subparsers.add_parser("models", help="list the shipped models")
     models.add_argument("--json", action="store_true", help="print a JSON list")
     models.set_defaults(func=run_models)
+
+
+def _key_argument(parser) -> None:
+    parser.add_argument("--key", default=None,
+                        help="secret key (default: $MESHSEAL_KEY, else the public key anyone can read)")
+
+
+def _key(args) -> str | None:
+    """--key, else $MESHSEAL_KEY (keeps the key out of shell history), else None (the public key)."""
+    import os
+
+    key = args.key if args.key is not None else os.environ.get("MESHSEAL_KEY")
+    if key is not None and not key:
+        raise MeshsealError("the key is empty; give a non-empty --key or MESHSEAL_KEY, or none for the public key")
+    return key
+
+
+def _asset_id(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got '{text}'") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"an asset ID is not negative, got {value}")
+    return value
 
 
 def _render_pair(original, marked, views: int, size: int = 256):
@@ -161,11 +197,15 @@ def run_embed(args) -> int:
         if args.preview.resolve() == args.output.resolve():
             raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
         check_output(args.preview, mesh.source.input_files)
-    marked = watermarker.embed(mesh, args.message, strength=args.strength)
+    key = _key(args)
+    if args.bits is not None:
+        marked = watermarker.embed(mesh, bits=args.bits, key=key, strength=args.strength)
+    else:
+        marked = watermarker.embed(mesh, args.message if args.id is None else args.id, key=key, strength=args.strength)
     written = save(marked, args.output)
     report, renders = embed_report(mesh, marked, args.views)
     report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": args.strength,
-               "output": str(args.output)}
+               "keyed": key is not None, "output": str(args.output)}
     if args.preview is not None:
         write_preview(args.preview, mesh, marked, renders)
         report["preview"] = str(args.preview)
@@ -184,32 +224,88 @@ def run_embed(args) -> int:
     return 0
 
 
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff", ".gif"}
+
+
+def picture_paths(paths: list[Path]) -> list[Path]:
+    """The pictures named: files as given, folders as their picture files (by suffix, sorted)."""
+    pictures = []
+    for path in paths:
+        if path.is_dir():
+            found = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+            if not found:
+                raise MeshsealError(f"{path}: no pictures in this folder ({', '.join(sorted(IMAGE_SUFFIXES))})")
+            pictures.extend(found)
+        else:
+            pictures.append(path)
+    return pictures
+
+
+def _describe(result, expect=None) -> str:
+    """One line for a person: the decision, the message, the evidence."""
+    how = "" if result.camera is None else f", camera: {result.camera}"
+    if result.registration_iou is not None:
+        how += f" (silhouette IoU {result.registration_iou:.3f})"
+    if result.detected is None:
+        return f"bits {result.bits}{how}"
+    p_value = f"p = {result.p_value:.2g}"
+    if not result.detected and expect is not None and result.message is not None:
+        return f"not {json.dumps(expect)}: the mark reads {json.dumps(result.message)} ({p_value} of the match{how})"
+    if not result.detected:
+        return f"not detected ({p_value}{how})"
+    if result.message is None:
+        return f"detected, message unreadable ({p_value}{how})"
+    corrected = f", {result.errors_corrected} bit(s) corrected" if result.errors_corrected else ""
+    return f"detected {json.dumps(result.message)} ({p_value}{corrected}{how})"
+
+
 def run_detect(args) -> int:
     from ..api import load
 
     watermarker = load(args.model)
     if not 1.0 <= args.fov <= 170.0:
         raise MeshsealError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
+    key, expect = _key(args), args.expect if args.expect_id is None else args.expect_id
+    pictures = picture_paths(args.images)
     original = None
     if watermarker.informed:
         if args.mesh is None:
             raise MeshsealError(f"model '{watermarker.name}' reads pictures with the original mesh: add --mesh FILE")
         original = watermarker.original(args.mesh)
-    failed = 0
-    for path in args.images:
+    if expect is not None:  # a message that cannot be a message of this model: say so before any work
+        from .. import payload
+
+        payload.encode(expect, key, watermarker.n_bits)
+    failed, readings = 0, []
+    progress = None
+    if sys.stderr.isatty() and len(pictures) > 1:
+        from tqdm import tqdm
+
+        progress = tqdm(total=len(pictures), unit="picture", file=sys.stderr)
+    for path in pictures:
         try:
-            result = watermarker.detect(path, original, register=args.register, fov_y=args.fov)
+            reading = watermarker.read(path, original, register=args.register, fov_y=args.fov)
         except MeshsealError as error:
-            print(f"meshseal: error: {error}", file=sys.stderr)
+            (progress.write if progress else lambda line: print(line, file=sys.stderr))(f"meshseal: error: {error}")
+            if args.json:
+                print(json.dumps({"image": str(path), "error": str(error)}), flush=True)
             failed += 1
+            reading = None
+        if progress is not None:
+            progress.update()
+        if reading is None:
             continue
-        if args.json:
-            print(json.dumps({"image": str(path)} | result.to_dict()))
-        else:
-            how = "" if result.camera is None else f", camera: {result.camera}"
-            if result.registration_iou is not None:
-                how += f" (silhouette IoU {result.registration_iou:.3f})"
-            print(f"{path}: {result.bits} (confidence {result.confidence:.3f}{how})")
+        if args.pool:
+            readings.append(reading)
+            continue
+        result = watermarker.decide([reading], key, expect)
+        line = json.dumps({"image": str(path)} | result.to_dict()) if args.json else f"{path}: {_describe(result, expect)}"
+        (progress.write if progress and not args.json else print)(line)
+    if progress is not None:
+        progress.close()
+    if args.pool and readings:
+        result = watermarker.decide(readings, key, expect)
+        print(json.dumps(result.to_dict()) if args.json else f"{len(readings)} pictures pooled: {_describe(result, expect)}")
     return 2 if failed else 0
 
 
@@ -264,8 +360,10 @@ def run_models(args) -> int:
 
     models = shipped_models()
     if args.json:
-        print(json.dumps([{"name": m["name"], "n_bits": m["n_bits"], "strategy": m["strategy"]} for m in models]))
+        print(json.dumps(models))
     else:
         for m in models:
-            print(f"{m['name']}: {m['n_bits']} bits, {m['strategy']}")
+            kind = "informed (needs the original mesh)" if m["informed"] else "blind"
+            print(f"{m['name']}: {m['n_bits']} raw bits, {m['payload_bits']} payload bits, {m['strategy']}, {kind}"
+                  f"{', calibrated p-values' if m['calibrated'] else ''}")
     return 0

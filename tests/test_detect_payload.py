@@ -1,0 +1,73 @@
+"""Text in, text out through the command line with the shipped model: keys, wrong keys, unmarked
+pictures, a known message (--expect), pooling, folders and per-picture errors."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from meshseal.cli import main
+
+FIXTURES = Path(__file__).parent / "fixtures"
+BUNNY = str(FIXTURES / "bunny.glb")
+
+
+@pytest.fixture(scope="module")
+def pictures(tmp_path_factory):
+    """Two views of the bunny marked with 'ab42' under key 's3cret', and one of the unmarked bunny."""
+    folder = tmp_path_factory.mktemp("pictures")
+    assert main(["embed", BUNNY, "-o", str(folder / "m.glb"), "--message", "ab42", "--key", "s3cret", "--views", "1"]) == 0
+    assert main(["render", str(folder / "m.glb"), "-o", str(folder / "views" / "v.png"), "--views", "2", "--seed", "3",
+                 "--width", "192", "--height", "192"]) == 0
+    assert main(["render", BUNNY, "-o", str(folder / "clean.png"), "--width", "192", "--height", "192"]) == 0
+    return folder
+
+
+def _detect(capsys, *argv):
+    capsys.readouterr()
+    code = main(["detect", *map(str, argv), "--mesh", BUNNY, "--json"])
+    captured = capsys.readouterr()
+    return code, [json.loads(line) for line in captured.out.splitlines()], captured.err
+
+
+def test_the_right_key_reads_the_text_and_nothing_else_does(pictures, capsys, monkeypatch):
+    code, results, _ = _detect(capsys, pictures / "views", pictures / "clean.png", "--key", "s3cret")
+    assert code == 0 and len(results) == 3
+    marked, clean = results[:2], results[2]
+    for result in marked:
+        assert result["detected"] and result["message"] == "ab42" and result["p_value"] < 1e-6
+        assert result["camera"] == "metadata" and result["errors_corrected"] is not None
+    assert not clean["detected"] and clean["message"] is None and clean["p_value"] > 1e-3
+    # Another key, or none (the public key): the mark is noise.
+    for key in (["--key", "other"], []):
+        code, results, _ = _detect(capsys, pictures / "views" / "v_0.png", *key)
+        assert code == 0 and not results[0]["detected"] and results[0]["message"] is None
+    # The key from the environment, as a known message; another message is refused but named.
+    monkeypatch.setenv("MESHSEAL_KEY", "s3cret")
+    code, results, _ = _detect(capsys, pictures / "views" / "v_1.png", "--expect", "ab42")
+    assert results[0]["detected"] and results[0]["p_value"] < 1e-6
+    code, results, _ = _detect(capsys, pictures / "views" / "v_1.png", "--expect", "ab43")
+    assert not results[0]["detected"] and results[0]["message"] == "ab42"
+
+
+def test_pooling_decides_once_and_bad_pictures_do_not_stop_the_batch(pictures, capsys):
+    code, results, _ = _detect(capsys, pictures / "views", "--key", "s3cret", "--pool")
+    assert code == 0 and len(results) == 1
+    assert results[0]["detected"] and results[0]["message"] == "ab42" and results[0]["pictures"] == 2
+    code, results, err = _detect(capsys, pictures / "missing.png", pictures / "views" / "v_0.png", "--key", "s3cret")
+    assert code == 2 and err.count("meshseal: error:") == 1 and "missing.png" in err
+    assert "error" in results[0] and results[1]["message"] == "ab42"
+
+
+def test_payload_limits_and_models_listing(pictures, tmp_path, capsys):
+    for argv in (["--message", "too long"], ["--id", str(2 ** 32)], ["--message", "ab", "--key", ""]):
+        capsys.readouterr()
+        assert main(["embed", BUNNY, "-o", str(tmp_path / "x.glb"), *argv]) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("meshseal: error:"), (argv, err)
+    assert not (tmp_path / "x.glb").exists()
+    capsys.readouterr()
+    assert main(["models", "--json"]) == 0
+    models = {m["name"]: m for m in json.loads(capsys.readouterr().out)}
+    assert models["default"]["payload_bits"] >= 32 and models["default"]["calibrated"]
+    assert models["default"]["informed"] and models["learned32"]["payload_bits"] == 12

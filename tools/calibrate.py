@@ -1,0 +1,213 @@
+"""Check the detection decision of a calibrated model on real pictures, and measure its true positives.
+
+False positives: every test mesh, *unmarked*, rendered from many seeded views (half the paper's range,
+half all around; random light and background; 8-bit values), each picture also re-saved as JPEG
+(quality 75) and resized to half size. Each is read under the public key with its own camera (from
+metadata, as `meshseal render` writes it). Under the null model (no mark under this key) the p-values
+are uniform: the histogram, a KS test against the uniform distribution and the count at or below the
+threshold `payload.FPR` say whether they are.
+
+True positives: every test mesh marked with a random 32-bit asset ID (strength 1, public key), one
+seed-range picture each, read with the camera known (as is, and after JPEG 75, half size, noise,
+blur), and for the first `--registered` meshes three pictures each, read with the camera registered
+(no metadata) one by one and pooled. Reports the detection rate at FPR 1e-6 (TPR) and the exact-
+message rate.
+
+    python tools/calibrate.py --data data --out docs [--views 36] [--registered 100] [--device cuda]
+
+Writes OUT/calibration.md, OUT/calibration_pvalues.png and OUT/calibration.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from scipy import stats
+
+import meshseal
+from meshseal import payload
+from meshseal.data.dataset import MeshDataset, collate
+from meshseal.distortions import gaussian_blur
+from meshseal.framing import object_mask
+from meshseal.models.spread import soft_bits
+from meshseal.pipeline import random_backgrounds, sample_views, spread_evidence
+from meshseal.register import register
+from meshseal.render import MeshBatch, MeshRenderer
+
+
+def quantise(images: torch.Tensor) -> torch.Tensor:
+    return torch.round(images.clamp(0, 1) * 255) / 255
+
+
+def jpeg(images: torch.Tensor, quality: int = 75) -> torch.Tensor:
+    """Each picture (B, 3, H, W) through a JPEG file of `quality` and back."""
+    out = []
+    for image in images:
+        buffer = io.BytesIO()
+        Image.fromarray((image.permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)).save(
+            buffer, format="JPEG", quality=quality)
+        decoded = np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB"), dtype=np.float32) / 255
+        out.append(torch.from_numpy(decoded).permute(2, 0, 1))
+    return torch.stack(out).to(images)
+
+
+def variants(pictures: torch.Tensor, generator: torch.Generator, attacks: bool) -> dict[str, torch.Tensor]:
+    """The pictures as saved, re-saved as JPEG 75 and at half size; with `attacks` also noise and blur."""
+    out = {"png": pictures, "jpeg75": jpeg(pictures),
+           "half_size": quantise(F.interpolate(pictures, scale_factor=0.5, mode="bilinear", antialias=True))}
+    if attacks:
+        noise = torch.randn(pictures.shape, generator=generator).to(pictures) * (2.0 / 255)
+        out["noise_2"] = quantise(pictures + noise)
+        out["blur_0.7"] = quantise(gaussian_blur(pictures, 0.7))
+    return out
+
+
+def mesh_batches(dataset: MeshDataset, index: int, device) -> tuple[MeshBatch, dict]:
+    batch = collate([dataset[index]], device)
+    original = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces", "texture")))
+    return original, batch
+
+
+def null_pvalues(wm, dataset, views: int, size: int, seed: int, device, log) -> dict[str, np.ndarray]:
+    model, key_seed = wm.model, payload.key_seed(None)
+    renderer, generator = MeshRenderer(), torch.Generator().manual_seed(seed)
+    results: dict[str, list] = {}
+    for index in range(len(dataset)):
+        original, _ = mesh_batches(dataset, index, device)
+        for sampler, count in (("seed", views // 2), ("any", views - views // 2)):
+            cameras, lights = sample_views(count, sampler, generator)
+            cameras, lights = cameras.to(device), lights.to(device)
+            with torch.no_grad():
+                pictures = quantise(renderer(original, cameras, lights, size, size,
+                                             random_backgrounds(count, generator).to(device)).image)
+                for name, images in variants(pictures, generator, attacks=False).items():
+                    evidence = torch.cat([spread_evidence(model, original, images[[i]], cameras[[i]])
+                                          for i in range(count)])  # one picture at a time: one light each
+                    z = soft_bits(model.texture_encoder, evidence, key_seed)
+                    results.setdefault(name, []).extend(payload.detection_pvalue(row) for row in z.double().cpu())
+        if log and (index + 1) % 20 == 0:
+            log(f"null: {index + 1}/{len(dataset)} meshes, {sum(len(v) for v in results.values())} pictures")
+    return {name: np.array(values) for name, values in results.items()}
+
+
+def true_positives(wm, dataset, size: int, registered: int, seed: int, device, log) -> dict[str, dict]:
+    model, key_seed = wm.model, payload.key_seed(None)
+    renderer, generator = MeshRenderer(), torch.Generator().manual_seed(seed + 1)
+    counts: dict[str, list] = {}
+    registration_seconds = []
+
+    def record(name: str, evidence: torch.Tensor, asset: int) -> None:
+        z = soft_bits(model.texture_encoder, evidence, key_seed)[0].double().cpu()
+        decoded = payload.decode(z)
+        counts.setdefault(name, []).append((payload.detected(payload.detection_pvalue(z)), decoded.message == asset))
+
+    for index in range(len(dataset)):
+        original, batch = mesh_batches(dataset, index, device)
+        asset = int(torch.randint(0, 2 ** 32, (1,), generator=generator))
+        raw = payload.encode(payload.Message.id(asset), None, wm.n_bits).to(device)[None]
+        with torch.no_grad():
+            texture = model.mark_texture(batch["texture"], raw, 1.0, key_seed)
+        marked = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces")), texture)
+        views = 3 if index < registered else 1
+        cameras, lights = sample_views(views, "seed", generator)
+        cameras, lights = cameras.to(device), lights.to(device)
+        with torch.no_grad():
+            pictures = quantise(renderer(marked, cameras, lights, size, size,
+                                         random_backgrounds(views, generator).to(device)).image)
+            for name, images in variants(pictures[:1], generator, attacks=True).items():
+                record(f"known camera, {name}", spread_evidence(model, original, images, cameras[[0]]), asset)
+        if index >= registered:
+            continue
+        pooled = []
+        for view in range(views):
+            picture = pictures[view]
+            mask, background = object_mask(picture.permute(1, 2, 0).cpu().numpy())
+            started = time.perf_counter()
+            found = register(original, picture, torch.from_numpy(mask).to(device),
+                             torch.from_numpy(background).to(picture))
+            registration_seconds.append(time.perf_counter() - started)
+            with torch.no_grad():
+                evidence = spread_evidence(model, original, picture[None], found.camera)
+            if view == 0:
+                record("registered, one picture", evidence, asset)
+            pooled.append(evidence)
+        record("registered, 3 pictures pooled", torch.stack(pooled).sum(0), asset)
+        if log and (index + 1) % 10 == 0:
+            log(f"marked: {index + 1}/{len(dataset)} meshes")
+    table = {name: {"tpr": float(np.mean([d for d, _ in rows])), "exact_message": float(np.mean([e for _, e in rows])),
+                    "pictures": len(rows)} for name, rows in counts.items()}
+    if registration_seconds:
+        table["registered, one picture"]["seconds_per_registration"] = float(np.mean(registration_seconds))
+    return table
+
+
+def write_report(out: Path, null: dict[str, np.ndarray], positives: dict, command: str, seconds: float) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    everything = np.concatenate(list(null.values()))
+    summary = {"null": {name: {"pictures": int(len(p)), "at_or_below_fpr": int((p <= payload.FPR).sum()),
+                               "min_p": float(p.min()), "ks_uniform_p": float(stats.kstest(p, "uniform").pvalue)}
+                        for name, p in (list(null.items()) + [("all", everything)])},
+               "fpr_threshold": payload.FPR, "true_positives": positives, "seconds": round(seconds, 1)}
+    figure, axes = plt.subplots(1, len(null), figsize=(4 * len(null), 3.2))
+    for axis, (name, p) in zip(np.atleast_1d(axes), null.items()):
+        axis.hist(p, bins=20, range=(0, 1), color="#4c72b0")
+        axis.axhline(len(p) / 20, color="k", lw=0.8, ls="--")
+        axis.set_title(f"{name}: {len(p)} clean pictures")
+        axis.set_xlabel("p-value")
+    figure.tight_layout()
+    figure.savefig(out / "calibration_pvalues.png", dpi=110)
+    lines = ["# Detection decision: calibration and true positives", "",
+             f"Made by `{command}` ({seconds / 60:.1f} min). Model `default`, public key, threshold p <= {payload.FPR:g}.",
+             "", "## Clean pictures (no mark): false positives", "",
+             "| pictures | count | at or below the threshold | smallest p | KS test vs uniform (p) |", "|---|---|---|---|---|"]
+    for name, row in summary["null"].items():
+        lines.append(f"| {name} | {row['pictures']} | {row['at_or_below_fpr']} | {row['min_p']:.3g} | {row['ks_uniform_p']:.3f} |")
+    lines += ["", "![p-value histograms](calibration_pvalues.png)", "",
+              "## Marked pictures: true positives at FPR 1e-6", "",
+              "| pictures | count | TPR | exact message |", "|---|---|---|---|"]
+    for name, row in positives.items():
+        lines.append(f"| {name} | {row['pictures']} | {row['tpr']:.4f} | {row['exact_message']:.4f} |")
+    (out / "calibration.md").write_text("\n".join(lines) + "\n")
+    (out / "calibration.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--out", type=Path, default=Path("docs"))
+    parser.add_argument("--views", type=int, default=36, help="clean pictures per test mesh (default 36)")
+    parser.add_argument("--meshes", type=int, default=None, help="at most this many test meshes (default all)")
+    parser.add_argument("--registered", type=int, default=100, help="meshes read through registration (default 100)")
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    started = time.perf_counter()
+    wm = meshseal.load(device=args.device)
+    dataset = MeshDataset(args.data, "test")
+    if args.meshes is not None:
+        dataset.rows = dataset.rows[:args.meshes]
+    null = null_pvalues(wm, dataset, args.views, args.size, args.seed, args.device, print)
+    positives = true_positives(wm, dataset, args.size, args.registered, args.seed, args.device, print)
+    command = ("python tools/calibrate.py --data DATA --out " + str(args.out) + f" --views {args.views} --registered "
+               f"{args.registered}" + (f" --meshes {args.meshes}" if args.meshes else "") + f" --device {args.device}")
+    summary = write_report(args.out, null, positives, command, time.perf_counter() - started)
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
