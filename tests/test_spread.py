@@ -66,3 +66,18 @@ def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, ca
         assert sheet.size == (768, 512)
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--bits", bits,
                  "--views", "1", "--strength", "0"]) == 2
+
+
+def test_many_views_of_one_mesh_read_as_one_by_one():
+    """Pictures of one multi-material mesh from several cameras, read in one batch (a light fitted per
+    picture), give exactly the evidence of reading them one at a time."""
+    from meshseal.pipeline import spread_evidence
+
+    model = WatermarkModel(SPREAD)
+    original = MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "multi_material.glb"))))
+    cameras, lights = sample_views(3, "seed", torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        pictures = MeshRenderer()(original, cameras, lights, 96, 96).image
+        together = spread_evidence(model, original, pictures, cameras)
+        alone = torch.cat([spread_evidence(model, original, pictures[[i]], cameras[[i]]) for i in range(3)])
+    assert together.abs().max() > 0 and torch.allclose(together, alone, atol=1e-6)

@@ -1,21 +1,22 @@
 """Check the detection decision of a calibrated model on real pictures, and measure its true positives.
 
-False positives: every test mesh, *unmarked*, rendered from many seeded views (half the paper's range,
-half all around; random light and background; 8-bit values), each picture also re-saved as JPEG
-(quality 75) and resized to half size. Each is read under the public key with its own camera (from
+False positives: every test mesh, *unmarked*, rendered from many seeded views at `--null-size`^2
+(half the paper's range, half all around; random light and background; 8-bit values), each picture
+also re-saved as JPEG (quality 75) and resized to twice its size. Each is read under the public key with its own camera (from
 metadata, as `meshseal render` writes it). Under the null model (no mark under this key) the p-values
 are uniform: the histogram, a KS test against the uniform distribution and the count at or below the
 threshold `payload.FPR` say whether they are.
 
 True positives: every test mesh marked with a random 32-bit asset ID (strength 1, public key), one
-seed-range picture each, read with the camera known (as is, and after JPEG 75, half size, noise,
-blur), and for the first `--registered` meshes three pictures each, read with the camera registered
+seed-range `--size`^2 picture each, read with the camera known (as is, and after JPEG 75, half size,
+noise, blur), and for the first `--registered` meshes three pictures each, read with the camera registered
 (no metadata) one by one and pooled. Reports the detection rate at FPR 1e-6 (TPR) and the exact-
 message rate.
 
-    python tools/calibrate.py --data data --out docs [--views 36] [--registered 100] [--device cuda]
+    python tools/calibrate.py --data data --out docs [--views 36] [--null-size 128] [--registered 100]
 
-Writes OUT/calibration.md, OUT/calibration_pvalues.png and OUT/calibration.json.
+Writes OUT/calibration.md, OUT/calibration_pvalues.png and OUT/calibration.json (with `--views 0`, no
+clean pictures: OUT/calibration_registered.md and .json).
 """
 
 from __future__ import annotations
@@ -59,10 +60,10 @@ def jpeg(images: torch.Tensor, quality: int = 75) -> torch.Tensor:
     return torch.stack(out).to(images)
 
 
-def variants(pictures: torch.Tensor, generator: torch.Generator, attacks: bool) -> dict[str, torch.Tensor]:
-    """The pictures as saved, re-saved as JPEG 75 and at half size; with `attacks` also noise and blur."""
+def variants(pictures: torch.Tensor, generator: torch.Generator, attacks: bool, scale: float = 0.5) -> dict[str, torch.Tensor]:
+    """The pictures as saved, re-saved as JPEG 75 and resized by `scale`; with `attacks` also noise and blur."""
     out = {"png": pictures, "jpeg75": jpeg(pictures),
-           "half_size": quantise(F.interpolate(pictures, scale_factor=0.5, mode="bilinear", antialias=True))}
+           f"resized_x{scale:g}": quantise(F.interpolate(pictures, scale_factor=scale, mode="bilinear", antialias=True))}
     if attacks:
         noise = torch.randn(pictures.shape, generator=generator).to(pictures) * (2.0 / 255)
         out["noise_2"] = quantise(pictures + noise)
@@ -88,10 +89,8 @@ def null_pvalues(wm, dataset, views: int, size: int, seed: int, device, log) -> 
             with torch.no_grad():
                 pictures = quantise(renderer(original, cameras, lights, size, size,
                                              random_backgrounds(count, generator).to(device)).image)
-                for name, images in variants(pictures, generator, attacks=False).items():
-                    evidence = torch.cat([spread_evidence(model, original, images[[i]], cameras[[i]])
-                                          for i in range(count)])  # one picture at a time: one light each
-                    z = soft_bits(model.texture_encoder, evidence, key_seed)
+                for name, images in variants(pictures, generator, attacks=False, scale=2.0).items():
+                    z = soft_bits(model.texture_encoder, spread_evidence(model, original, images, cameras), key_seed)
                     results.setdefault(name, []).extend(payload.detection_pvalue(row) for row in z.double().cpu())
         if log and (index + 1) % 20 == 0:
             log(f"null: {index + 1}/{len(dataset)} meshes, {sum(len(v) for v in results.values())} pictures")
@@ -149,39 +148,50 @@ def true_positives(wm, dataset, size: int, registered: int, seed: int, device, l
     return table
 
 
-def write_report(out: Path, null: dict[str, np.ndarray], positives: dict, command: str, seconds: float) -> dict:
+def write_report(out: Path, null: dict[str, np.ndarray], positives: dict, command: str, seconds: float,
+                 name: str) -> dict:
+    """OUT/NAME.md and OUT/NAME.json (and, with clean pictures, OUT/NAME_pvalues.png)."""
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {"fpr_threshold": payload.FPR, "true_positives": positives, "seconds": round(seconds, 1)}
+    lines = [f"# Detection decision: {'calibration and ' if null else ''}true positives", "",
+             f"Made by `{command}` ({seconds / 60:.1f} min on this repository's 2-core CPU machine). Model `default`, "
+             f"public key, threshold p <= {payload.FPR:g}.", ""]
+    if null:
+        summary["null"] = _null_section(out, null, name, lines)
+    lines += ["## Marked pictures: true positives at FPR 1e-6", "",
+              "| pictures | count | TPR | exact message |", "|---|---|---|---|"]
+    for label, row in positives.items():
+        lines.append(f"| {label} | {row['pictures']} | {row['tpr']:.4f} | {row['exact_message']:.4f} |")
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    (out / f"{name}.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _null_section(out: Path, null: dict[str, np.ndarray], name: str, lines: list[str]) -> dict:
+    """The clean pictures' p-values: table rows into `lines`, histograms into OUT/NAME_pvalues.png."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out.mkdir(parents=True, exist_ok=True)
     everything = np.concatenate(list(null.values()))
-    summary = {"null": {name: {"pictures": int(len(p)), "at_or_below_fpr": int((p <= payload.FPR).sum()),
-                               "min_p": float(p.min()), "ks_uniform_p": float(stats.kstest(p, "uniform").pvalue)}
-                        for name, p in (list(null.items()) + [("all", everything)])},
-               "fpr_threshold": payload.FPR, "true_positives": positives, "seconds": round(seconds, 1)}
+    summary = {label: {"pictures": int(len(p)), "at_or_below_fpr": int((p <= payload.FPR).sum()),
+                       "min_p": float(p.min()), "ks_uniform_p": float(stats.kstest(p, "uniform").pvalue)}
+               for label, p in (list(null.items()) + [("all", everything)])}
     figure, axes = plt.subplots(1, len(null), figsize=(4 * len(null), 3.2))
-    for axis, (name, p) in zip(np.atleast_1d(axes), null.items()):
+    for axis, (label, p) in zip(np.atleast_1d(axes), null.items()):
         axis.hist(p, bins=20, range=(0, 1), color="#4c72b0")
         axis.axhline(len(p) / 20, color="k", lw=0.8, ls="--")
-        axis.set_title(f"{name}: {len(p)} clean pictures")
+        axis.set_title(f"{label}: {len(p)} clean pictures")
         axis.set_xlabel("p-value")
     figure.tight_layout()
-    figure.savefig(out / "calibration_pvalues.png", dpi=110)
-    lines = ["# Detection decision: calibration and true positives", "",
-             f"Made by `{command}` ({seconds / 60:.1f} min). Model `default`, public key, threshold p <= {payload.FPR:g}.",
-             "", "## Clean pictures (no mark): false positives", "",
-             "| pictures | count | at or below the threshold | smallest p | KS test vs uniform (p) |", "|---|---|---|---|---|"]
-    for name, row in summary["null"].items():
-        lines.append(f"| {name} | {row['pictures']} | {row['at_or_below_fpr']} | {row['min_p']:.3g} | {row['ks_uniform_p']:.3f} |")
-    lines += ["", "![p-value histograms](calibration_pvalues.png)", "",
-              "## Marked pictures: true positives at FPR 1e-6", "",
-              "| pictures | count | TPR | exact message |", "|---|---|---|---|"]
-    for name, row in positives.items():
-        lines.append(f"| {name} | {row['pictures']} | {row['tpr']:.4f} | {row['exact_message']:.4f} |")
-    (out / "calibration.md").write_text("\n".join(lines) + "\n")
-    (out / "calibration.json").write_text(json.dumps(summary, indent=2) + "\n")
+    figure.savefig(out / f"{name}_pvalues.png", dpi=110)
+    lines += ["## Clean pictures (no mark): false positives", "",
+              "| pictures | count | at or below the threshold | smallest p | KS test vs uniform (p) |", "|---|---|---|---|---|"]
+    for label, row in summary.items():
+        lines.append(f"| {label} | {row['pictures']} | {row['at_or_below_fpr']} | {row['min_p']:.3g} | "
+                     f"{row['ks_uniform_p']:.3f} |")
+    lines += ["", f"![p-value histograms]({name}_pvalues.png)", ""]
     return summary
 
 
@@ -189,10 +199,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--out", type=Path, default=Path("docs"))
-    parser.add_argument("--views", type=int, default=36, help="clean pictures per test mesh (default 36)")
+    parser.add_argument("--views", type=int, default=36, help="clean pictures per test mesh (default 36; 0: none)")
     parser.add_argument("--meshes", type=int, default=None, help="at most this many test meshes (default all)")
     parser.add_argument("--registered", type=int, default=100, help="meshes read through registration (default 100)")
-    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--size", type=int, default=256, help="marked pictures' size (default 256)")
+    parser.add_argument("--null-size", type=int, default=128, help="clean pictures' size (default 128)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
@@ -201,11 +212,12 @@ def main() -> None:
     dataset = MeshDataset(args.data, "test")
     if args.meshes is not None:
         dataset.rows = dataset.rows[:args.meshes]
-    null = null_pvalues(wm, dataset, args.views, args.size, args.seed, args.device, print)
+    null = null_pvalues(wm, dataset, args.views, args.null_size, args.seed, args.device, print) if args.views else {}
     positives = true_positives(wm, dataset, args.size, args.registered, args.seed, args.device, print)
-    command = ("python tools/calibrate.py --data DATA --out " + str(args.out) + f" --views {args.views} --registered "
-               f"{args.registered}" + (f" --meshes {args.meshes}" if args.meshes else "") + f" --device {args.device}")
-    summary = write_report(args.out, null, positives, command, time.perf_counter() - started)
+    command = (f"python tools/calibrate.py --data DATA --out {args.out} --views {args.views} --null-size {args.null_size} "
+               f"--size {args.size} --registered {args.registered}" + (f" --meshes {args.meshes}" if args.meshes else ""))
+    summary = write_report(args.out, null, positives, command, time.perf_counter() - started,
+                           "calibration" if null else "calibration_registered")
     print(json.dumps(summary))
 
 

@@ -88,6 +88,19 @@ class RelitResidual:
     lights: object
 
 
+def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch:
+    """`mesh` with the fitted ambient factors (B, 3), one per picture: B meshes with a material each
+    take theirs; one mesh of M materials seen B times gets its material table repeated per picture."""
+    n_images, n_materials = len(ambient), mesh.ambient.shape[0]
+    if n_materials == n_images and (mesh.face_material.dim() == 2 or n_images == 1):
+        return replace(mesh, ambient=ambient)
+    material = mesh.face_material if mesh.face_material.dim() == 2 else mesh.face_material.expand(n_images, -1)
+    offsets = n_materials * torch.arange(n_images, device=material.device).unsqueeze(1)
+    return replace(mesh, face_material=material + offsets, textures=list(mesh.textures) * n_images,
+                   ambient=ambient.repeat_interleave(n_materials, dim=0), diffuse=mesh.diffuse.repeat(n_images, 1),
+                   specular=mesh.specular.repeat(n_images, 1), shininess=mesh.shininess.repeat(n_images))
+
+
 def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> RelitResidual:
     """Rasterize the original `mesh` from `cameras` over the picture (B, 3, H, W), fit a point light
     that explains the picture from the original texture (`relight_fragments`) and render the original
@@ -102,7 +115,7 @@ def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> Re
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         albedo = pixels_at(flat.image, fragments)
         _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo)
-        relit = replace(mesh, ambient=ambient if mesh.ambient.shape[0] == n_images else ambient.expand_as(mesh.ambient))
+        relit = _with_ambient_per_image(mesh, ambient)
         relit_render = MeshRenderer()(relit, cameras, lights, height, width, fragments=fragments)
         inside = pixels_at(relit_render.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
         keep = torch.nonzero(inside).squeeze(1)
