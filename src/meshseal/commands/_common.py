@@ -31,14 +31,14 @@ def colour(text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
-def positive_int(limit: int):
+def positive_int(limit: int, minimum: int = 1):
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a whole number, got '{text}'") from None
-        if not 1 <= value <= limit:
-            raise argparse.ArgumentTypeError(f"must be between 1 and {limit}, got {value}")
+        if not minimum <= value <= limit:
+            raise argparse.ArgumentTypeError(f"must be between {minimum} and {limit}, got {value}")
         return value
     return parse
 

@@ -25,8 +25,8 @@ def register(subparsers) -> None:
     embed.add_argument("--strength", type=float, default=1.0,
                        help="spread-spectrum models: mark amplitude relative to the default (2: 6 dB louder and "
                             "more robust, 0.5: 6 dB quieter; default 1)")
-    embed.add_argument("--views", type=positive_int(64), default=4,
-                       help="views for the visibility figures (default 4)")
+    embed.add_argument("--views", type=positive_int(64, minimum=0), default=4,
+                       help="views for the visibility figures (default 4; 0: none, faster)")
     embed.add_argument("--preview", type=Path, default=None,
                        help="write a PNG sheet: texture and one render, original | marked | difference x4")
     embed.add_argument("--up", choices=("y", "z"), default=None, help="the file's up axis (default: by format)")
@@ -149,18 +149,22 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
         per_vertex = torch.zeros(original.n_vertices)
         per_vertex[original.faces.reshape(-1)] = sizes[original.face_material].repeat_interleave(3)
         shifts.append(float(((marked.uvs - original.uvs).norm(dim=-1) * per_vertex).mean()))
-    render_a, render_b, inside = _render_pair(original, marked, views)
-    seen = visibility(render_a, render_b, inside)
     report = {
         "psnr_texture": round(sum(texture_psnr) / len(texture_psnr), 3) if texture_psnr else None,
         "normal_angle_deg": round(float(normal_angle_deg(marked.normals, original.normals)), 4),
         "uv_shift_texels": round(shifts[0], 4) if shifts else 0.0,
+        "views": views,
+    }
+    if views == 0:  # no renders: the file figures only
+        return report, None
+    render_a, render_b, inside = _render_pair(original, marked, views)
+    seen = visibility(render_a, render_b, inside)
+    report |= {
         "psnr_object": round(seen["psnr_object"], 3),
         "ssim_object": round(seen["ssim_object"], 5),
         "flip_object": round(seen["flip_object"], 4),
         "psnr_frame": round(float(psnr(render_b, render_a).mean()), 3),
         "ssim_frame": round(float(ssim(render_b, render_a).mean()), 5),
-        "views": views,
     }
     return report, (render_a[0], render_b[0])
 
@@ -194,6 +198,8 @@ def run_embed(args) -> int:
     mesh = load_mesh(args.input, up_axis=args.up)
     check_output(args.output, mesh.source.input_files)
     if args.preview is not None:
+        if args.views == 0:
+            raise MeshsealError("--preview shows a render: give --views 1 or more")
         if args.preview.resolve() == args.output.resolve():
             raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
         check_output(args.preview, mesh.source.input_files)
@@ -216,9 +222,10 @@ def run_embed(args) -> int:
         psnr_texture = report["psnr_texture"]
         print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB, normal change "
               f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels")
-        print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {report['psnr_object']:.2f} dB, "
-              f"SSIM {report['ssim_object']:.4f}, FLIP {report['flip_object']:.4f} "
-              f"(whole frame: PSNR {report['psnr_frame']:.2f} dB, SSIM {report['ssim_frame']:.4f})")
+        if args.views:
+            print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {report['psnr_object']:.2f} dB, "
+                  f"SSIM {report['ssim_object']:.4f}, FLIP {report['flip_object']:.4f} "
+                  f"(whole frame: PSNR {report['psnr_frame']:.2f} dB, SSIM {report['ssim_frame']:.4f})")
         if args.preview is not None:
             print(f"wrote preview {args.preview}")
     return 0
