@@ -66,6 +66,13 @@ def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, ca
         assert sheet.size == (768, 512)
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--bits", bits,
                  "--views", "1", "--strength", "0"]) == 2
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--bits", bits,
+                 "--views", "0", "--preview", str(tmp_path / "s.png")]) == 2  # a preview needs a render
+    capsys.readouterr()
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--bits", bits,
+                 "--views", "0", "--json"]) == 0  # file figures only, no renders
+    report = json.loads(capsys.readouterr().out)
+    assert 39.5 < report["psnr_texture"] < 40.5 and "psnr_object" not in report
 
 
 def test_many_views_of_one_mesh_read_as_one_by_one():
