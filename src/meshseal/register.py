@@ -22,8 +22,9 @@ from .render import Cameras, MeshBatch, MeshRenderer, fibonacci_directions, ligh
 SEARCH_SIZE = 128  # render size of the candidate views and of the refinement
 COMPARE_SIZE = 64  # framed size at which candidates are scored
 LOWPASS = 4.0  # the texture stage compares band-passed pictures: shading (a light misfit) is left out
-WORKING_SIZE = 512
-PICK_SHADING_WEIGHT = 1.0  # how much the texture fit counts when picking among refined candidates  # longest side at which the whole picture is refined on the texture
+WORKING_SIZE = 512  # longest side at which the whole picture is refined on the texture
+TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur is this many pixels
+PICK_SHADING_WEIGHT = 1.0  # how much the texture fit counts when picking among refined candidates
 DISTANCE = 3.5
 FOV = 60.0
 
@@ -106,18 +107,47 @@ def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> 
 
 
 def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.Tensor,
-                    target_mask: torch.Tensor) -> torch.Tensor:
+                    target_mask: torch.Tensor, light=None) -> torch.Tensor:
     """How badly the picture's colours fit the mesh's texture under the best-fitting point light
-    (`relight_fragments`), relative to their variance, per image (B,). Differentiable w.r.t. the
-    camera through the texture lookup."""
+    (`relight_fragments`), or under `light` (ambient factors, PointLights) when given, relative to
+    their variance, per image (B,). Differentiable w.r.t. the camera through the texture lookup."""
     n_batch = fragments.shape[0]
     seen = pixels_at(target.expand(n_batch, -1, -1, -1), fragments)
     inside = (pixels_at(target_mask.expand(n_batch, -1, -1, -1), fragments)[:, 0] > 0.5).to(seen.dtype)
-    predicted, _, _ = relight_fragments(mesh, fragments, cameras, seen)
+    if light is None:
+        predicted, _, _ = relight_fragments(mesh, fragments, cameras, seen)
+    else:
+        predicted = _shaded(mesh, fragments, cameras, *light)
     error = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - predicted) ** 2).mean(1) * inside)
     count = seen.new_zeros(n_batch).index_add(0, fragments.batch, inside)
     variance = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - seen.mean(0)) ** 2).mean(1) * inside)
     return torch.where(count >= 16, error / variance.clamp_min(1e-4), torch.ones_like(error))
+
+
+def _shaded(mesh: MeshBatch, fragments, cameras: Cameras, ambient: torch.Tensor, lights) -> torch.Tensor:
+    """The colours (P, 3) our shader gives the fragments under a fixed light (as `relight_fragments`
+    predicts them), differentiable through the texture lookup."""
+    from .render.shader import PhongShader
+    from .render.unrender import surface_attributes, surface_points
+
+    _, albedo = surface_attributes(mesh, fragments)
+    with torch.no_grad():
+        position, normal = surface_points(mesh, fragments, cameras)
+    pick = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
+    predicted = PhongShader()(position, normal, albedo, pick(cameras.eye.detach()), pick(lights.position),
+                              pick(lights.intensity), pick(ambient), torch.zeros_like(albedo),
+                              albedo.new_full((len(albedo),), 32.0))
+    return predicted.clamp(0.0, 1.0)
+
+
+def _fitted_light(mesh: MeshBatch, camera: Cameras, level):
+    """(ambient factors, PointLights) that best explain the picture's colours seen from `camera`."""
+    target, _ = level
+    size = target.shape[-1]
+    with torch.no_grad():
+        fragments = MeshRenderer(blend="hard")(mesh, camera, lights_at(camera.eye), size, size).fragments
+        _, ambient, lights = relight_fragments(mesh, fragments, camera, pixels_at(target, fragments))
+    return ambient, lights
 
 
 def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
@@ -144,7 +174,8 @@ def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
 def _refine(mesh: MeshBatch, start: Cameras, level, sigma: float, steps: int, shading_weight: float,
             lr: float) -> Cameras:
     """Adam on a rigid move of the camera (`_moved`): silhouette L2 (both blurred by `sigma` pixels)
-    plus the weighted shading misfit, through the differentiable renderer."""
+    plus the weighted shading misfit, through the differentiable renderer. The light is fitted once,
+    at the start (refitting it every step costs more than the rendering and changes little)."""
     from .distortions import gaussian_blur
 
     target, target_mask = level
@@ -152,6 +183,7 @@ def _refine(mesh: MeshBatch, start: Cameras, level, sigma: float, steps: int, sh
     blurred_target = gaussian_blur(target_mask, sigma)
     renderer = MeshRenderer()
     delta = torch.zeros(6, requires_grad=True)
+    light = _fitted_light(mesh, start, level) if shading_weight > 0 else None
     optimizer = torch.optim.Adam([delta], lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
     for _ in range(steps):
@@ -160,7 +192,8 @@ def _refine(mesh: MeshBatch, start: Cameras, level, sigma: float, steps: int, sh
         cover = out.rgba[..., 3].unsqueeze(1)
         loss = ((gaussian_blur(cover, sigma) - blurred_target) ** 2).mean() * (1 + sigma) ** 2
         if shading_weight > 0:
-            loss = loss + shading_weight * _shading_misfit(mesh, out.fragments, camera, target, target_mask).mean()
+            loss = loss + shading_weight * _shading_misfit(mesh, out.fragments, camera, target, target_mask,
+                                                                 light).mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -205,53 +238,74 @@ def pose_error(mesh: MeshBatch, truth: Cameras, found: Cameras, height: int, wid
 
 
 def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
-                      sigmas: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5), iterations: int = 4, step: float = 0.25,
+                      sigmas: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5), iterations: int = 6, step: float = 0.25,
                       margin: int = 3) -> Cameras:
     """Sub-pixel refinement of `camera` (one camera of `picture` (1, 3, H, W), object pixels `mask`
     (1, H, W)) on the texture rather than the silhouette: Gauss-Newton on the rigid move of `_moved`
     (pixel units) minimising the squared difference between the picture and the original relit to
     match it, over interior pixels at least `margin` pixels from any silhouette (so that moves of a
-    pixel or two never bring background in). Both are blurred by each of `sigmas` in turn (coarse to
-    fine: wider basins first); the light is refitted before each level. The Jacobian comes from
-    forward differences of `step` pixels: 7 renders an iteration, no gradients. Works on a copy of at
-    most WORKING_SIZE pixels a side."""
+    pixel or two never bring background in). Both are band-passed around each of `sigmas` in turn
+    (coarse to fine: wider basins first); the light is refitted before each level, and a level blurred
+    by sigma > TEXTURE_SCALE_SIGMA pixels runs on a copy shrunk so that its blur is that many pixels
+    (4x fewer pixels to render at sigma 4, as accurate). The Jacobian comes from forward differences
+    of `step` pixels (7 renders, no gradients); a step that does not lower the cost is halved twice
+    before the level stops. Works on a copy of at most WORKING_SIZE pixels a side."""
+    picture, mask = _working_size(picture, mask)
+    for sigma in sigmas:
+        scale = min(1.0, TEXTURE_SCALE_SIGMA / sigma)
+        level_picture, level_mask = picture, mask
+        if scale < 1.0:
+            size = (max(8, round(picture.shape[-2] * scale)), max(8, round(picture.shape[-1] * scale)))
+            level_picture = F.interpolate(picture, size=size, mode="area")
+            level_mask = F.interpolate(mask[:, None], size=size, mode="area")[:, 0]
+        camera = _texture_level(mesh, camera, level_picture, level_mask, sigma * scale, iterations, step, margin)
+    return camera
+
+
+def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
+                   iterations: int, step: float, margin: int) -> Cameras:
+    """One level of `refine_on_texture`, at the picture's (1, 3, H, W) own size."""
     from .distortions import gaussian_blur
     from .pipeline import relit_residual
 
-    picture, mask = _working_size(picture, mask)
     height, width = picture.shape[-2:]
     renderer = MeshRenderer(blend="hard")
     grow = 2 * margin + 1
-    for sigma in sigmas:
-        with torch.no_grad():
-            fit = relit_residual(mesh, picture, camera)
-            coverage = renderer(fit.relit, camera, fit.lights, height, width).rgba[..., 3]
-            outside = ((coverage < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
-            inside = F.max_pool2d(outside, grow, 1, margin)[:, 0] < 0.5
-            if int(inside.sum()) < 64:
-                return camera
-            weight = inside[:, None].to(picture.dtype)
-            smooth = lambda x, s: gaussian_blur(x * weight, s) / gaussian_blur(weight, s).clamp_min(1e-3)  # noqa: E731
-            band = lambda x: smooth(x, sigma) - smooth(x, LOWPASS * max(sigma, 1.0))  # noqa: E731
-            target = band(picture)
+    with torch.no_grad():
+        fit = relit_residual(mesh, picture, camera)
+        coverage = renderer(fit.relit, camera, fit.lights, height, width).rgba[..., 3]
+        outside = ((coverage < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
+        inside = F.max_pool2d(outside, grow, 1, margin)[:, 0] < 0.5
+        if int(inside.sum()) < 64:
+            return camera
+        weight = inside[:, None].to(picture.dtype)
+        smooth = lambda x, s: gaussian_blur(x * weight, s) / gaussian_blur(weight, s).clamp_min(1e-3)  # noqa: E731
+        band = lambda x: smooth(x, sigma) - smooth(x, LOWPASS * max(sigma, 1.0))  # noqa: E731
+        target = band(picture)
 
-            def residual(delta: torch.Tensor) -> torch.Tensor:
-                moved = _moved(camera, delta, height)
-                image = renderer(fit.relit, moved, fit.lights, height, width).image
-                return (band(image) - target).permute(0, 2, 3, 1)[inside].reshape(-1)
+        def residual(delta: torch.Tensor) -> torch.Tensor:
+            moved = _moved(camera, delta, height)
+            image = renderer(fit.relit, moved, fit.lights, height, width).image
+            return (band(image) - target).permute(0, 2, 3, 1)[inside].reshape(-1)
 
-            delta = torch.zeros(6, dtype=picture.dtype)
-            for _ in range(iterations):
-                base = residual(delta)
-                jacobian = torch.stack([(residual(delta + step * e) - base) / step for e in torch.eye(6)], dim=1)
-                normal = jacobian.T @ jacobian
-                damping = 1e-3 * normal.diagonal().mean() * torch.eye(6)
-                update = -torch.linalg.solve(normal + damping, jacobian.T @ base)
-                if float((residual(delta + update) ** 2).sum()) >= float((base ** 2).sum()):
+        delta = torch.zeros(6, dtype=picture.dtype)
+        base = residual(delta)
+        cost = float((base ** 2).sum())
+        for _ in range(iterations):
+            jacobian = torch.stack([(residual(delta + step * e) - base) / step for e in torch.eye(6)], dim=1)
+            normal = jacobian.T @ jacobian
+            damping = 1e-3 * normal.diagonal().mean() * torch.eye(6)
+            update = -torch.linalg.solve(normal + damping, jacobian.T @ base)
+            for fraction in (1.0, 0.5, 0.25):
+                trial = residual(delta + fraction * update)
+                if float((trial ** 2).sum()) < cost:
                     break
-                delta = delta + update
-            camera = _moved(camera, delta, height)
-    return camera
+            else:
+                break
+            delta, base, cost = delta + fraction * update, trial, float((trial ** 2).sum())
+            if float((fraction * update).abs().max()) < 0.01:  # converged: a hundredth of a pixel
+                break
+        return _moved(camera, delta, height)
 
 
 def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0) -> list[int]:
