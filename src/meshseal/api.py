@@ -321,7 +321,8 @@ class Watermarker:
         if self.n_bits not in payload.SCHEMAS:
             return Detection(bits, soft.tolist(), None, None, None, None, **extra)
         decoded = payload.decode(soft, key)
-        marked = self.calibrated and payload.detected(float(payload.detection_pvalue(soft)))
+        any_mark_p = float(payload.detection_pvalue(soft)) if self.calibrated else None
+        marked = any_mark_p is not None and payload.detected(any_mark_p)
         if expect is not None:
             expected = payload.encode(expect, key, self.n_bits)
             if self.calibrated:
@@ -331,8 +332,7 @@ class Watermarker:
             # A mark of another message still correlates with this one: the code must read this one.
             detected = payload.detected(p_value) and decoded.message == _plain(expect)
         elif self.calibrated:
-            p_value = float(payload.detection_pvalue(soft))
-            detected = marked
+            p_value, detected = any_mark_p, marked
         else:  # uncalibrated logits: no decision without an expected message
             p_value, detected = None, None
         message = decoded.message if detected or marked else None
