@@ -116,6 +116,7 @@ class _Reading:
     box: tuple[float, float, float]
     camera: str | None
     registration_iou: float | None
+    found: object = None  # the Cameras used to un-render (informed models)
 
 
 MIN_PICTURE_SIDE = 16  # smaller pictures cannot show the object's texture; refused at once
@@ -360,9 +361,11 @@ class Watermarker:
             raise MeshsealError("the original mesh has no texture with UVs, so it cannot carry this model's mark")
         return MeshBatch.from_mesh(normalize(to_z_up(replace(mesh, source=None))).to(self.device))
 
-    def read(self, image, original, register: bool = False, fov_y: float = 60.0) -> _Reading:
+    def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None) -> _Reading:
         """One picture's evidence, before any decision (`decide`); `original` from `original()`, None
-        for blind models. A batch reads each picture on its own and keeps going past bad ones."""
+        for blind models. `camera` (one `Cameras`, canonical frame) overrides metadata and registration
+        (experiments comparing with the true camera). A batch reads each picture on its own and keeps
+        going past bad ones."""
         pixels, alpha, camera_text = _load_image(image)
         if alpha is not None:
             pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
@@ -373,8 +376,8 @@ class Watermarker:
             what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"
             raise MeshsealError(f"{_name(image)}: no object found (the picture is {what})")
         tensor = torch.from_numpy(np.ascontiguousarray(pixels)).permute(2, 0, 1)[None].to(self.device)
-        camera = None
-        if original is not None and camera_text is not None and not register:
+        given = camera is not None
+        if original is not None and camera_text is not None and not register and not given:
             camera = _camera_from_metadata(camera_text, self.device, _name(image))
         source, iou = None, None
         if camera is not None:  # the known camera says where the object is: no need to search for it
@@ -383,7 +386,7 @@ class Watermarker:
             height, width = pixels.shape[:2]
             corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
             box = box_from_points(corners.reshape(-1, 2), height, width)
-            evidence, source = self._evidence(original, tensor.clamp(0, 1), camera), "metadata"
+            evidence, source = self._evidence(original, tensor.clamp(0, 1), camera), "given" if given else "metadata"
         else:
             box = boxes_from_mask(torch.from_numpy(mask)[None])
             background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)
@@ -397,8 +400,8 @@ class Watermarker:
                     found = register_camera(original, tensor[0], torch.from_numpy(mask).to(self.device),
                                             background_tensor[0], fov_y=fov_y)
                 evidence = self._evidence(original, tensor.clamp(0, 1), found.camera)
-                source, iou = "registered", found.iou
-        return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou)
+                source, iou, camera = "registered", found.iou, found.camera
+        return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera)
 
     def _evidence(self, original, picture: torch.Tensor, camera) -> torch.Tensor:
         """Matched-filter cell sums (spread models) or decoder logits of one picture (1, 3, H, W)."""

@@ -191,7 +191,7 @@ def encode(message: str | int | Message, key: str | bytes | None = None, n_bits:
     word = (SCHEMA_VERSION << (schema.k - 2)) | (kind << schema.payload_bits) | value
     data = np.array([(word >> (schema.k - 1 - i)) & 1 for i in range(schema.k)], dtype=np.uint8)
     codeword = np.asarray(_code(n_bits).encode(data), dtype=np.uint8)
-    codeword = np.append(codeword, codeword.sum() % 2) ^ _keystream(key, n_bits)
+    codeword = np.append(codeword, np.uint8(codeword.sum() % 2)) ^ _keystream(key, n_bits)
     raw = np.empty(n_bits, dtype=np.uint8)
     raw[_permutation(key, n_bits)] = codeword
     return torch.from_numpy(raw.astype(np.float32))
@@ -215,7 +215,7 @@ def _bch_decode(word: np.ndarray) -> np.ndarray | None:
     code = _code(len(word))
     decoded, n_errors = code.decode(word[:-1], output="codeword", errors=True)
     decoded = np.asarray(decoded, dtype=np.uint8)
-    parity = decoded.sum() % 2
+    parity = np.uint8(decoded.sum() % 2)
     if n_errors < 0 or n_errors + (parity != word[-1]) > code.t:
         return None
     return np.append(decoded, parity)

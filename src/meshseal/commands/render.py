@@ -1,4 +1,5 @@
-"""`meshseal render`: render a mesh file to PNG with the differentiable renderer (no gradients)."""
+"""`meshseal render`: render a mesh file to PNG or JPEG with our renderer, OpenGL or Blender (Cycles, Eevee,
+Workbench), all with the same cameras, lights and conventions (docs/conventions.md)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,11 @@ import argparse
 from pathlib import Path
 
 from ..errors import MeshsealError
+from ..render import ENGINES
+from ..render.blender import LIGHT_KINDS, VIEW_TRANSFORMS
 from ._common import colour, positive_int, vector3
+
+FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}
 
 DEFAULT_EYE = (0.0, -2.5, 3.0)  # inside the seed's camera range (x=0, y in [-3,-2], z in [2,4])
 DEFAULT_LIGHT = (2.0, 1.0, 2.0)  # the mean of the seed's light distribution
@@ -17,12 +22,16 @@ CHUNK = 8  # views rendered per batch
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "render", help="render a mesh to PNG image(s)",
-        description="Render a mesh with meshseal's differentiable renderer. The mesh is rotated into the "
-                    "canonical Z-up frame and scaled into [-1, 1]^3 so the seed's cameras frame it.")
+        "render", help="render a mesh to PNG/JPEG image(s) with any engine",
+        description="Render a mesh with meshseal's differentiable renderer, OpenGL or Blender. The mesh is "
+                    "rotated into the canonical Z-up frame and scaled into [-1, 1]^3 so the seed's cameras "
+                    "frame it; every engine uses the same cameras and light.")
     parser.add_argument("mesh", type=Path, help="mesh file (.obj, .glb, .gltf, .ply, .off, .stl)")
     parser.add_argument("-o", "--output", type=Path, required=True,
-                        help="output PNG; with several views OUT_0.png, OUT_1.png, ... are written")
+                        help="output .png or .jpg; with several views OUT_0.png, OUT_1.png, ... are written")
+    parser.add_argument("--engine", choices=ENGINES, default="ours",
+                        help="ours (default), gl (OpenGL reference), or Blender's cycles | eevee | workbench "
+                             "(needs pip install 'meshseal[blender]')")
     parser.add_argument("--width", type=positive_int(MAX_SIZE), default=512, help="image width (default 512)")
     parser.add_argument("--height", type=positive_int(MAX_SIZE), default=512, help="image height (default 512)")
     parser.add_argument("--camera", type=vector3, action="append", metavar="X,Y,Z",
@@ -40,7 +49,17 @@ def register(subparsers) -> None:
     parser.add_argument("--up", choices=("y", "z"), default=None,
                         help="the file's up axis (default: y for OBJ/glTF/GLB, z for PLY/OFF/STL)")
     parser.add_argument("--blend", choices=("splat", "hard"), default="splat",
-                        help="'splat' (antialiased, default) or 'hard' (plain rasterization)")
+                        help="engine 'ours': 'splat' (antialiased, default) or 'hard' (plain rasterization)")
+    parser.add_argument("--light-type", choices=LIGHT_KINDS, default="point",
+                        help="Blender engines: a point, sun or area lamp where --light is, or 'world': only "
+                             "a bundled studio HDRI (--hdri); default point")
+    parser.add_argument("--hdri", default="studio", help="Blender's bundled world HDRI for --light-type world "
+                                                         "(studio, city, courtyard, forest, interior, night, sunrise, sunset)")
+    parser.add_argument("--view-transform", choices=VIEW_TRANSFORMS, default="Standard",
+                        help="Blender engines: Standard (default) or AgX (Blender's own default)")
+    parser.add_argument("--samples", type=positive_int(100000), default=None,
+                        help="Blender engines: samples per pixel (default: cycles 64, eevee 16, workbench 8)")
+    parser.add_argument("--quality", type=positive_int(100), default=90, help="JPEG quality for .jpg output (default 90)")
     parser.set_defaults(func=run)
 
 
@@ -72,6 +91,15 @@ def _cameras(args, torch):
     return Cameras(eye, torch.zeros_like(eye), up.clone())
 
 
+def _engine_options(args) -> dict:
+    if args.engine == "ours":
+        return {"blend": args.blend}
+    if args.engine == "gl":
+        return {}
+    return {"light": args.light_type, "hdri": args.hdri, "view_transform": args.view_transform,
+            "samples": args.samples, "seed": args.seed}
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
@@ -79,11 +107,12 @@ def run(args: argparse.Namespace) -> int:
 
     from ..mesh import load, normalize, to_z_up
     from ..mesh.io import atomic_write, check_output, image_bytes
-    from ..render import MeshRenderer, lights_at
+    from ..render import lights_at, make_renderer
 
     output: Path = args.output
-    if output.suffix.lower() != ".png":
-        raise MeshsealError(f"{output}: the output must be a .png file")
+    fmt = FORMATS.get(output.suffix.lower())
+    if fmt is None:
+        raise MeshsealError(f"{output}: the output must be a .png or .jpg file")
     mesh = load(args.mesh, up_axis=args.up)
     paths = output_paths(output, len(args.camera) if args.camera else args.views)
     protected = set(mesh.source.input_files) if mesh.source is not None else set()
@@ -93,14 +122,17 @@ def run(args: argparse.Namespace) -> int:
     mesh = normalize(to_z_up(mesh))
     cameras = _cameras(args, torch)
     lights = lights_at(torch.tensor([args.light], dtype=torch.float32).expand(len(cameras), 3))
-    renderer = MeshRenderer(blend=args.blend)
+    renderer = make_renderer(args.engine, **_engine_options(args))
+    chunk = CHUNK if args.engine in ("ours", "gl") else len(cameras)  # Blender: one process for all views
     with torch.no_grad():
-        for start in range(0, len(cameras), CHUNK):
-            index = list(range(start, min(start + CHUNK, len(cameras))))
+        for start in range(0, len(cameras), chunk):
+            index = list(range(start, min(start + chunk, len(cameras))))
             rgba = renderer.render(mesh, cameras[index], lights[index], args.width, args.height,
                                    background=args.background)
             pixels = (rgba[..., :3].clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
             for k, image in zip(index, pixels):
-                atomic_write(paths[k], image_bytes(Image.fromarray(image, "RGB"), camera=cameras[k]))
+                encoded = (image_bytes(Image.fromarray(image, "RGB"), camera=cameras[k]) if fmt == "PNG" else
+                           image_bytes(Image.fromarray(image, "RGB"), "JPEG", quality=args.quality))
+                atomic_write(paths[k], encoded)
                 print(paths[k])
     return 0

@@ -477,11 +477,11 @@ def _to_trimesh(mesh: Mesh):
 CAMERA_KEY = "meshseal:camera"
 
 
-def image_bytes(image: Image.Image, fmt: str = "PNG", camera=None) -> bytes:
+def image_bytes(image: Image.Image, fmt: str = "PNG", camera=None, quality: int = 90) -> bytes:
     """Encode an image; a PNG may carry the camera that rendered it (one `Cameras` element, in the
     canonical frame) as a text chunk, which informed detection uses instead of registering."""
     buffer = io.BytesIO()
-    options = {}
+    options = {"quality": quality} if fmt == "JPEG" else {}
     if camera is not None and fmt == "PNG":
         from PIL.PngImagePlugin import PngInfo
 

@@ -20,4 +20,23 @@ __all__ = ["Cameras", "cameras_from_eyes", "fibonacci_directions", "look_at", "p
            "sample_any_lights", "sample_seed_lights", "Fragments", "clip_to_screen", "rasterize", "MeshBatch",
            "MeshRenderer", "Renderer", "RenderOutput", "PhongShader", "splat", "sample_texture",
            "sample_textures", "surface_points", "fit_point_light", "relight_fragments", "pixels_at", "surface_at_pixels", "surface_attributes",
-           "unrender"]
+           "unrender", "ENGINES", "make_renderer"]
+
+ENGINES = ("ours", "gl", "cycles", "eevee", "workbench")
+
+
+def make_renderer(engine: str = "ours", **options) -> Renderer:
+    """The `Renderer` for `engine`: ours (the differentiable renderer; `blend` = splat | hard), gl
+    (moderngl, the OpenGL reference) or a Blender engine (cycles | eevee | workbench; `options` as
+    `BlenderRenderer` takes them)."""
+    if engine == "ours":
+        return MeshRenderer(**options)
+    if engine == "gl":
+        from .opengl import OpenGLRenderer
+
+        return OpenGLRenderer(**options)
+    if engine in ("cycles", "eevee", "workbench"):
+        from .blender import BlenderRenderer
+
+        return BlenderRenderer(engine=engine, **options)
+    raise ValueError(f"unknown engine '{engine}' ({' | '.join(ENGINES)})")
