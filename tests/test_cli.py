@@ -151,7 +151,7 @@ def _bad_inputs(tmp_path: Path) -> list[list]:
         ["render", png, "-o", out],
         ["render", empty, "-o", out],
         ["render", FIXTURES / "textures" / "brick.png", "-o", out],  # unsupported extension
-        ["render", FIXTURES / "bunny.glb", "-o", tmp_path / "out.jpg"],
+        ["render", FIXTURES / "bunny.glb", "-o", tmp_path / "out.bmp"],
         ["render", FIXTURES / "bunny.glb", "-o", out, "--camera", "1,2"],
         ["render", FIXTURES / "bunny.glb", "-o", out, "--camera", "0,0,0"],
         ["render", FIXTURES / "bunny.glb", "-o", out, "--width", "0"],
