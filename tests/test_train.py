@@ -13,6 +13,7 @@ from safetensors.torch import load_file
 import meshseal
 from meshseal.cli import main
 from meshseal.data.build import build
+from meshseal.models.io import load_model
 from meshseal.train import TrainConfig, Trainer
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -134,3 +135,36 @@ def test_api_detect_accepts_arrays_any_size_and_alpha(dataset, tmp_path):
         result = wm.detect(image)
         assert len(result.bits) == 8 and len(result.soft) == 8
     assert isinstance(wm.detect([picture, picture]), list)
+
+
+def test_finetune_caches_tunes_only_the_decoder_and_resumes(dataset, tmp_path):
+    from meshseal.data.dataset import MeshDataset
+    from meshseal.finetune import FinetuneConfig, finetune
+
+    Trainer(_config(dataset), tmp_path / "run", log=lambda *_: None).fit()
+    model = load_model(tmp_path / "run" / "model.safetensors")
+    cfg = FinetuneConfig(engine="gl", meshes=2, views=1, size=48, steps=4, batch=2, lr=1e-2, val_meshes=1,
+                         engines=["ours", "gl"], save_every=2, tolerance=1.0)
+    train_set, test_set = MeshDataset(dataset, "train"), MeshDataset(dataset, "test")
+    report = finetune(model, train_set, test_set, cfg, tmp_path / "ft", log=lambda *_: None)
+    assert report["kept"] and set(report["before"]) == set(report["after"]) == {"ours", "gl"}
+    assert report["train_pictures"] == 2
+    cached = sorted((tmp_path / "ft" / "cache" / "gl").glob("*.npz"))
+    assert len(cached) == 2
+    tuned = load_model(tmp_path / "ft" / "model.safetensors")
+    before, after = model.state_dict(), tuned.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith("decoder.") for k in changed)  # only the decoder learned
+    stamps = [p.stat().st_mtime_ns for p in cached]
+    again = finetune(model, train_set, test_set, cfg, tmp_path / "ft", log=lambda *_: None)  # resumes: done
+    assert [p.stat().st_mtime_ns for p in cached] == stamps  # the cache was reused, not re-rendered
+    assert again["after"] == report["after"]
+
+
+def test_finetune_refuses_a_matched_filter(dataset, tmp_path):
+    from meshseal.data.dataset import MeshDataset
+    from meshseal.finetune import FinetuneConfig, finetune
+
+    with pytest.raises(meshseal.MeshsealError, match="nothing to fine-tune"):
+        finetune(meshseal.load().model, MeshDataset(dataset, "train"), MeshDataset(dataset, "test"),
+                 FinetuneConfig(engine="gl"), tmp_path / "ft")

@@ -79,6 +79,24 @@ def register(subparsers) -> None:
     train.add_argument("--data", type=Path, default=None, help="override the config's dataset folder")
     train.set_defaults(func=run_train)
 
+    tune = subparsers.add_parser("finetune", help="fine-tune a learned decoder on another engine's pictures",
+                                 description="Watermark training meshes, render them with ENGINE (cached, "
+                                             "resumable), fine-tune the decoder on them and keep the result "
+                                             "only if it loses no accuracy on the other engines.")
+    tune.add_argument("--engine", choices=("ours", "gl", "cycles", "eevee", "workbench"), required=True)
+    tune.add_argument("--data", type=Path, required=True, help="dataset folder (meshseal data build)")
+    tune.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
+    tune.add_argument("--out", type=Path, default=None, help="output folder (default runs/finetune_<engine>)")
+    tune.add_argument("--meshes", type=int, default=200, help="training meshes rendered (default 200)")
+    tune.add_argument("--views", type=int, default=2, help="views per mesh (default 2)")
+    tune.add_argument("--size", type=int, default=128, help="picture size (default 128)")
+    tune.add_argument("--steps", type=int, default=500, help="fine-tuning steps (default 500)")
+    tune.add_argument("--val-meshes", type=int, default=30, help="test meshes per engine for the keep decision")
+    tune.add_argument("--engines", default="ours,gl,cycles,eevee,workbench",
+                      help="engines the result must not lose accuracy on (comma-separated)")
+    tune.add_argument("--seed", type=int, default=0)
+    tune.set_defaults(func=run_finetune)
+
     models = subparsers.add_parser("models", help="list the shipped models")
     models.add_argument("--json", action="store_true", help="print a JSON list")
     models.set_defaults(func=run_models)
@@ -359,6 +377,27 @@ def run_train(args) -> int:
     out = args.out or Path("runs") / config.name
     summary = Trainer(config, out, resume=args.resume).fit()
     print(json.dumps(summary | {"out": str(out)}))
+    return 0
+
+
+def run_finetune(args) -> int:
+    from ..api import load
+    from ..data.dataset import MeshDataset
+    from ..finetune import FinetuneConfig, finetune
+
+    watermarker = load(args.model)
+    if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
+        raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest); build one with 'meshseal data build'")
+    engines = [e for e in args.engines.split(",") if e]
+    unknown = [e for e in engines if e not in ("ours", "gl", "cycles", "eevee", "workbench")]
+    if unknown:
+        raise MeshsealError(f"unknown engine(s) in --engines: {', '.join(unknown)}")
+    cfg = FinetuneConfig(engine=args.engine, meshes=args.meshes, views=args.views, size=args.size, steps=args.steps,
+                         val_meshes=args.val_meshes, engines=engines, seed=args.seed)
+    out = args.out or Path("runs") / f"finetune_{args.engine}"
+    report = finetune(watermarker.model, MeshDataset(args.data, "train", seed=args.seed),
+                      MeshDataset(args.data, "test", seed=args.seed), cfg, out)
+    print(json.dumps({k: report[k] for k in ("engine", "kept", "before", "after", "train_pictures")} | {"out": str(out)}))
     return 0
 
 
