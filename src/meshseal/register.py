@@ -17,7 +17,8 @@ import torch
 import torch.nn.functional as F
 
 from .framing import boxes_from_mask, crop_boxes
-from .render import Cameras, MeshBatch, MeshRenderer, fibonacci_directions, lights_at, pixels_at, relight_fragments
+from .render import (Cameras, MeshBatch, MeshRenderer, PointLights, fibonacci_directions, lights_at, pixels_at,
+                     relight_fragments)
 
 SEARCH_SIZE = 128  # render size of the candidate views and of the refinement
 COMPARE_SIZE = 64  # framed size at which candidates are scored
@@ -121,7 +122,10 @@ def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.
         predicted = _shaded(mesh, fragments, cameras, *light)
     error = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - predicted) ** 2).mean(1) * inside)
     count = seen.new_zeros(n_batch).index_add(0, fragments.batch, inside)
-    variance = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - seen.mean(0)) ** 2).mean(1) * inside)
+    pixels = seen.new_zeros(n_batch).index_add(0, fragments.batch, torch.ones_like(inside)).clamp_min(1)
+    mean = seen.new_zeros(n_batch, 3).index_add(0, fragments.batch, seen) / pixels[:, None]
+    variance = seen.new_zeros(n_batch).index_add(0, fragments.batch,
+                                                 ((seen - mean[fragments.batch]) ** 2).mean(1) * inside)
     return torch.where(count >= 16, error / variance.clamp_min(1e-4), torch.ones_like(error))
 
 
@@ -142,48 +146,54 @@ def _shaded(mesh: MeshBatch, fragments, cameras: Cameras, ambient: torch.Tensor,
 
 
 def _fitted_light(mesh: MeshBatch, camera: Cameras, level):
-    """(ambient factors, PointLights) that best explain the picture's colours seen from `camera`."""
+    """(ambient factors, PointLights), one per camera, that best explain the picture's colours seen
+    from each of `camera`."""
     target, _ = level
     size = target.shape[-1]
     with torch.no_grad():
         fragments = MeshRenderer(blend="hard")(mesh, camera, lights_at(camera.eye), size, size).fragments
-        _, ambient, lights = relight_fragments(mesh, fragments, camera, pixels_at(target, fragments))
+        _, ambient, lights = relight_fragments(mesh, fragments, camera,
+                                               pixels_at(target.expand(len(camera), -1, -1, -1), fragments))
     return ambient, lights
 
 
 def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
-    """`start` (one camera) moved by `delta` (6,), in pixel-sized units of a size x size picture: a
-    rotation (x, y, z) whose x and y turn the view by that many pixels at the centre, a translation
-    (x, y) shifting the object by that many pixels and a move along the view axis growing it by that
-    many pixels at its edge. Well-conditioned coordinates for the optimizer."""
+    """`start` (one camera, or B) moved by `delta` ((6,) or (B, 6)), in pixel-sized units of a size x
+    size picture: a rotation (x, y, z) whose x and y turn the view by that many pixels at the centre, a
+    translation (x, y) shifting the object by that many pixels and a move along the view axis growing
+    it by that many pixels at its edge. Well-conditioned coordinates for the optimizer. One camera per
+    row of `delta`, so that many moves render in one batch."""
+    delta = delta.reshape(-1, 6)
     focal = size / 2 / math.tan(math.radians(start.fov_y) / 2)
-    distance = (start.at - start.eye).norm()
-    omega = torch.stack([-delta[1], delta[0], delta[2] * 2 / size]) / focal * torch.tensor([1.0, 1.0, focal])
-    skew = torch.zeros(3, 3, dtype=delta.dtype)
-    skew[0, 1], skew[0, 2], skew[1, 2] = -omega[2], omega[1], -omega[0]
-    rotation = torch.linalg.matrix_exp(skew - skew.T)
-    translation = torch.stack([delta[3] * distance / focal, -delta[4] * distance / focal,
-                               delta[5] * distance * 2 / size])
-    view = start.view_matrix()[0]
-    rotation_world = rotation @ view[:3, :3]
-    translation_world = rotation @ view[:3, 3] + translation
-    eye = -(rotation_world.T @ translation_world)
-    forward = -rotation_world[2]
-    return replace(start, eye=eye[None], at=(eye + distance * forward)[None], up=rotation_world[1][None])
+    distance = (start.at - start.eye).norm(dim=-1, keepdim=True)  # (B or 1, 1)
+    w0, w1, w2 = -delta[:, 1] / focal, delta[:, 0] / focal, delta[:, 2] * 2 / size
+    zero = torch.zeros_like(w0)
+    skew = torch.stack([torch.stack([zero, -w2, w1], -1), torch.stack([w2, zero, -w0], -1),
+                        torch.stack([-w1, w0, zero], -1)], 1)  # (B, 3, 3): cross product with omega
+    rotation = torch.linalg.matrix_exp(skew)
+    translation = torch.stack([delta[:, 3] * distance[:, 0] / focal, -delta[:, 4] * distance[:, 0] / focal,
+                               delta[:, 5] * distance[:, 0] * 2 / size], -1)
+    view = start.view_matrix()
+    rotation_world = rotation @ view[:, :3, :3]
+    translation_world = (rotation @ view[:, :3, 3:])[..., 0] + translation
+    eye = -(rotation_world.transpose(1, 2) @ translation_world[..., None])[..., 0]
+    forward = -rotation_world[:, 2]
+    return replace(start, eye=eye, at=eye + distance * forward, up=rotation_world[:, 1])
 
 
 def _refine(mesh: MeshBatch, start: Cameras, level, sigma: float, steps: int, shading_weight: float,
             lr: float) -> Cameras:
-    """Adam on a rigid move of the camera (`_moved`): silhouette L2 (both blurred by `sigma` pixels)
-    plus the weighted shading misfit, through the differentiable renderer. The light is fitted once,
-    at the start (refitting it every step costs more than the rendering and changes little)."""
+    """Adam on a rigid move of each camera of `start` (`_moved`; the cameras are independent, refined
+    together in one batch): silhouette L2 (both blurred by `sigma` pixels) plus the weighted shading
+    misfit, through the differentiable renderer. The light is fitted once per camera, at the start
+    (refitting it every step costs more than the rendering and changes little)."""
     from .distortions import gaussian_blur
 
     target, target_mask = level
     size = target_mask.shape[-1]
     blurred_target = gaussian_blur(target_mask, sigma)
     renderer = MeshRenderer()
-    delta = torch.zeros(6, requires_grad=True)
+    delta = torch.zeros(len(start), 6, requires_grad=True)
     light = _fitted_light(mesh, start, level) if shading_weight > 0 else None
     optimizer = torch.optim.Adam([delta], lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
@@ -191,10 +201,11 @@ def _refine(mesh: MeshBatch, start: Cameras, level, sigma: float, steps: int, sh
         camera = _moved(start, delta, size)
         out = renderer(mesh, camera, lights_at(camera.eye.detach()), size, size)
         cover = out.rgba[..., 3].unsqueeze(1)
-        loss = ((gaussian_blur(cover, sigma) - blurred_target) ** 2).mean() * (1 + sigma) ** 2
+        # Per camera: the sum over cameras leaves each camera's gradient its own.
+        loss = ((gaussian_blur(cover, sigma) - blurred_target) ** 2).mean(dim=(1, 2, 3)).sum() * (1 + sigma) ** 2
         if shading_weight > 0:
             loss = loss + shading_weight * _shading_misfit(mesh, out.fragments, camera, target, target_mask,
-                                                                 light).mean()
+                                                                 light).sum()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -288,8 +299,11 @@ def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask:
     target = band(picture).permute(0, 2, 3, 1)[inside].reshape(-1)
 
     def residual(moved: Cameras) -> torch.Tensor:
-        image = renderer(fit.relit, moved, fit.lights, height, width).image
-        return band(image).permute(0, 2, 3, 1)[inside].reshape(-1) - target
+        """(B, M) for B cameras: every camera of `moved` renders in one batch."""
+        lights = PointLights(fit.lights.position.expand(len(moved), -1, -1),
+                             fit.lights.intensity.expand(len(moved), -1, -1))
+        image = renderer(fit.relit, moved, lights, height, width).image
+        return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(moved), -1) - target
 
     return residual, target
 
@@ -305,7 +319,7 @@ def texture_misfit(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         if problem is None:
             return float("inf")
         residual, target = problem
-        return float((residual(camera) ** 2).sum() / (target ** 2).sum().clamp_min(1e-12))
+        return float((residual(camera)[0] ** 2).sum() / (target ** 2).sum().clamp_min(1e-12))
 
 
 def refine_on_texture_widely(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
@@ -330,16 +344,17 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         residual = lambda delta: render_residual(_moved(camera, delta, height))  # noqa: E731
 
         delta = torch.zeros(6, dtype=picture.dtype)
-        base = residual(delta)
+        base = residual(delta)[0]
         cost = float((base ** 2).sum())
+        steps = step * torch.cat([torch.eye(6), -torch.eye(6)]).to(delta)
         for _ in range(iterations):
-            jacobian = torch.stack([(residual(delta + step * e) - residual(delta - step * e)) / (2 * step)
-                                    for e in torch.eye(6)], dim=1)
+            probes = residual(delta + steps)  # the 12 central-difference renders in one batch
+            jacobian = ((probes[:6] - probes[6:]) / (2 * step)).T
             normal = jacobian.T @ jacobian
             damping = 1e-3 * normal.diagonal().mean() * torch.eye(6)
             update = -torch.linalg.solve(normal + damping, jacobian.T @ base)
             for fraction in (1.0, 0.5, 0.25):
-                trial = residual(delta + fraction * update)
+                trial = residual(delta + fraction * update)[0]
                 if float((trial ** 2).sum()) < cost:
                     break
             else:
@@ -385,16 +400,13 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
     # 2. Refine the best few coarsely, then the best of them finely (blurred silhouettes first: their
     # gradients reach further than the one-pixel band of the splat's).
-    refined = []
-    for index in best:
-        camera = search[[index]]
-        for sigma in (3.0, 1.5):
-            camera = _refine(mesh, camera, levels[COMPARE_SIZE], sigma, steps, shading_weight, lr)
-        refined.append(camera)
+    refined = search[best]
+    for sigma in (3.0, 1.5):
+        refined = _refine(mesh, refined, levels[COMPARE_SIZE], sigma, steps, shading_weight, lr)
     # Symmetric shapes leave several views with the same silhouette: the texture tells them apart.
     target, target_mask = levels[SEARCH_SIZE]
-    camera = min(refined, key=lambda c: sum(texture_misfit(mesh, c, target, target_mask[:, 0], sigma)
-                                            for sigma in PICK_SIGMAS))
+    camera = min((refined[[i]] for i in range(len(refined))),
+                 key=lambda c: sum(texture_misfit(mesh, c, target, target_mask[:, 0], sigma) for sigma in PICK_SIGMAS))
     for sigma in (1.0, 0.0):
         camera = _refine(mesh, camera, levels[SEARCH_SIZE], sigma, steps, shading_weight, lr)
 
