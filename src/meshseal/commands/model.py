@@ -67,8 +67,8 @@ def register(subparsers) -> None:
                           help="only items with these texture kinds, comma-separated (own,real,noise)")
     evaluate.add_argument("--seed", type=int, default=0)
     evaluate.add_argument("--register", action="store_true",
-                          help="informed models: detect as `meshseal detect --register` does (one view per mesh, "
-                               "camera found by registration; slow)")
+                          help="informed models: detect as `meshseal detect --register` does (--views pictures per "
+                               "mesh without metadata, camera found by registration, also pooled; slow)")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(func=run_eval)
 
@@ -352,7 +352,7 @@ def run_eval(args) -> int:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
         log = None if args.json else print
         metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(args.size, 64),
-                                      args.sampler, log)
+                                      args.sampler, log, views=args.views)
     else:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, args.size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
