@@ -80,16 +80,28 @@ def main() -> None:
     parser.add_argument("--sampler", choices=("seed", "any"), default="seed")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="markdown file for the table")
-    parser.add_argument("--jsonl", type=Path, default=None, help="one JSON line per picture")
+    parser.add_argument("--jsonl", type=Path, default=None,
+                        help="one JSON line per picture; pictures already in it are not measured again (resume)")
     args = parser.parse_args()
 
     wm = meshseal.load()
     renderers = {engine: make_renderer(engine) for engine in args.engines}
     rows: dict[str, list[dict]] = {engine: [] for engine in args.engines}
-    log = args.jsonl.open("w") if args.jsonl else None
+    done = set()
+    if args.jsonl and args.jsonl.exists():
+        for line in args.jsonl.read_text().splitlines():
+            row = json.loads(line)
+            if row["engine"] in rows:
+                rows[row["engine"]].append(row)
+                done.add((row["mesh"], row["engine"], row["view"]))
+    log = args.jsonl.open("a") if args.jsonl else None
     started = time.perf_counter()
     for index, (name, mesh) in enumerate(meshes(args)):
         message = f"{index % 10000:04d}"
+        todo = [engine for engine in args.engines
+                if any((name, engine, view) not in done for view in range(args.views))]
+        if not todo:
+            continue
         try:
             marked = wm.embed(mesh, message)
         except meshseal.MeshsealError as error:
@@ -99,7 +111,8 @@ def main() -> None:
         canonical = {label: normalize(to_z_up(replace(m, source=None))) for label, m in (("original", mesh), ("marked", marked))}
         original_batch = wm.original(mesh)
         cameras, lights = sample_views(args.views, args.sampler, torch.Generator().manual_seed(args.seed * 7919 + index))
-        for engine, renderer in renderers.items():
+        for engine in todo:
+            renderer = renderers[engine]
             with torch.no_grad():
                 pictures = {label: renderer.render(m, cameras, lights, args.size, args.size, background=BACKGROUND)
                             for label, m in canonical.items()}
@@ -107,6 +120,8 @@ def main() -> None:
             seen = visibility(pictures["original"][..., :3].permute(0, 3, 1, 2),
                               pictures["marked"][..., :3].permute(0, 3, 1, 2), coverage)
             for view in range(args.views):
+                if (name, engine, view) in done:
+                    continue
                 picture = png_without_metadata(pictures["marked"][view, ..., :3].permute(2, 0, 1))
                 t0 = time.perf_counter()
                 try:

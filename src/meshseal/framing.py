@@ -12,7 +12,10 @@ import torch
 import torch.nn.functional as F
 
 
-def boxes_from_mask(mask: torch.Tensor, margin: float = 0.08) -> torch.Tensor:
+BOX_MARGIN = 0.08  # each side of a framed box leaves this fraction of the object's extent around it
+
+
+def boxes_from_mask(mask: torch.Tensor, margin: float = BOX_MARGIN) -> torch.Tensor:
     """(B, H, W) mask -> square boxes (B, 4) as (centre_x, centre_y, half_side) in pixels.
 
     An empty mask gives the whole image.
@@ -29,7 +32,7 @@ def boxes_from_mask(mask: torch.Tensor, margin: float = 0.08) -> torch.Tensor:
     return boxes
 
 
-def box_from_points(xy: torch.Tensor, height: int, width: int, margin: float = 0.08) -> torch.Tensor:
+def box_from_points(xy: torch.Tensor, height: int, width: int, margin: float = BOX_MARGIN) -> torch.Tensor:
     """The square box (1, 3) of pixel positions xy (N, 2) (e.g. projected vertices), as `boxes_from_mask`
     would find it for the pixels they cover, clipped to the picture."""
     xy = xy.detach().float().cpu().clamp(torch.zeros(2), torch.tensor([float(width), float(height)]))
