@@ -44,15 +44,14 @@ def main() -> None:
     model = meshseal.load().model
     dataset = MeshDataset(args.data, "test")
     refined = {}
-    refine = registration._refine
+    refine = registration._refine_silhouettes
 
     def keep_candidates(mesh, cameras, level, sigma, *rest, **options):
         out = refine(mesh, cameras, level, sigma, *rest, **options)
-        if len(cameras) > 1:  # the candidates' silhouette stage; the last call (sigma 1.5) stays
-            refined["candidates"] = out
+        refined["candidates"] = out  # the candidates' silhouette stage; the last call (sigma 1.5) stays
         return out
 
-    registration._refine = keep_candidates
+    registration._refine_silhouettes = keep_candidates
     for index in range(args.start, min(len(dataset), args.start + args.meshes)):
         generator = torch.Generator().manual_seed(1000 + index)
         batch = collate([dataset[index]], "cpu")

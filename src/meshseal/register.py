@@ -3,9 +3,11 @@
 Informed detection un-renders a picture onto the original mesh, so it needs the picture's camera. The
 picture is cropped to the object's square box (as `framing` does); candidate views from all around the
 mesh are rendered, framed the same way and scored by silhouette overlap and by how well the picture's
-colours fit the mesh's texture under the best-fitting simple lighting; the best few are refined by
-gradient descent on the same two terms through the differentiable renderer, and the best one wins. The camera returned
-renders the *cropped* picture, at any resolution.
+colours fit the mesh's texture under the best-fitting simple lighting; the best few are refined on
+their silhouettes, the one whose texture fits best is refined again, and the camera of the whole
+picture is finished on the texture. Every refinement is Gauss-Newton on a rigid move whose Jacobian is
+an image gradient times the move's analytic screen flow (Lucas-Kanade style: one render per
+iteration, no backward pass).
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ WORKING_SIZE = 512  # longest side at which the whole picture is refined on the 
 TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur is this many pixels
 WIDE_SIGMAS = (8.0, 4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
-FINE_SILHOUETTE_SIGMAS = (1.0, 0.0)  # the picked candidate's silhouette refinement at SEARCH_SIZE
-PICK_MARGIN = 0.7  # another candidate replaces the best-scored one only if its texture misfit is this much lower
+COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement at COMPARE_SIZE (blur, pixels)
+FINE_SILHOUETTE_SIGMAS = (1.0, 0.5)  # the picked candidate's silhouette refinement at SEARCH_SIZE
+PICK_MARGIN = 0.7
+SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading  # another candidate replaces the best-scored one only if its texture misfit is this much lower
 DISTANCE = 3.5
 FOV = 60.0
 
@@ -108,6 +112,14 @@ def _targets(target: torch.Tensor, target_mask: torch.Tensor) -> dict[int, tuple
     return levels
 
 
+def _overlaps(mesh: MeshBatch, cameras: Cameras, level) -> torch.Tensor:
+    """Silhouette IoU (B,) of cameras against the picture."""
+    size = level[1].shape[-1]
+    with torch.no_grad():
+        return _iou(MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size).rgba[..., 3],
+                    level[1][:, 0])
+
+
 def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(silhouette IoU - weighted shading misfit, IoU), each (B,), of cameras against the picture."""
     target, target_mask = level
@@ -119,17 +131,13 @@ def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> 
 
 
 def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.Tensor,
-                    target_mask: torch.Tensor, light=None) -> torch.Tensor:
+                    target_mask: torch.Tensor) -> torch.Tensor:
     """How badly the picture's colours fit the mesh's texture under the best-fitting point light
-    (`relight_fragments`), or under `light` (ambient factors, PointLights) when given, relative to
-    their variance, per image (B,). Differentiable w.r.t. the camera through the texture lookup."""
+    (`relight_fragments`), relative to their variance, per image (B,)."""
     n_batch = fragments.shape[0]
     seen = pixels_at(target.expand(n_batch, -1, -1, -1), fragments)
     inside = (pixels_at(target_mask.expand(n_batch, -1, -1, -1), fragments)[:, 0] > 0.5).to(seen.dtype)
-    if light is None:
-        predicted, _, _ = relight_fragments(mesh, fragments, cameras, seen)
-    else:
-        predicted = _shaded(mesh, fragments, cameras, *light)
+    predicted, _, _ = relight_fragments(mesh, fragments, cameras, seen)
     error = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - predicted) ** 2).mean(1) * inside)
     count = seen.new_zeros(n_batch).index_add(0, fragments.batch, inside)
     pixels = seen.new_zeros(n_batch).index_add(0, fragments.batch, torch.ones_like(inside)).clamp_min(1)
@@ -137,34 +145,6 @@ def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.
     variance = seen.new_zeros(n_batch).index_add(0, fragments.batch,
                                                  ((seen - mean[fragments.batch]) ** 2).mean(1) * inside)
     return torch.where(count >= 16, error / variance.clamp_min(1e-4), torch.ones_like(error))
-
-
-def _shaded(mesh: MeshBatch, fragments, cameras: Cameras, ambient: torch.Tensor, lights) -> torch.Tensor:
-    """The colours (P, 3) our shader gives the fragments under a fixed light (as `relight_fragments`
-    predicts them), differentiable through the texture lookup."""
-    from .render.shader import PhongShader
-    from .render.unrender import surface_attributes, surface_points
-
-    _, albedo = surface_attributes(mesh, fragments)
-    with torch.no_grad():
-        position, normal = surface_points(mesh, fragments, cameras)
-    pick = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
-    predicted = PhongShader()(position, normal, albedo, pick(cameras.eye.detach()), pick(lights.position),
-                              pick(lights.intensity), pick(ambient), torch.zeros_like(albedo),
-                              albedo.new_full((len(albedo),), 32.0))
-    return predicted.clamp(0.0, 1.0)
-
-
-def _fitted_light(mesh: MeshBatch, camera: Cameras, level):
-    """(ambient factors, PointLights), one per camera, that best explain the picture's colours seen
-    from each of `camera`."""
-    target, _ = level
-    size = target.shape[-1]
-    with torch.no_grad():
-        fragments = MeshRenderer(blend="hard")(mesh, camera, lights_at(camera.eye), size, size).fragments
-        _, ambient, lights = relight_fragments(mesh, fragments, camera,
-                                               pixels_at(target.expand(len(camera), -1, -1, -1), fragments))
-    return ambient, lights
 
 
 def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
@@ -191,37 +171,83 @@ def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
     return replace(start, eye=eye, at=eye + distance * forward, up=rotation_world[:, 1])
 
 
-def _refine(mesh: MeshBatch, start: Cameras, level, sigma: float, steps: int, shading_weight: float,
-            lr: float) -> Cameras:
-    """Adam on a rigid move of each camera of `start` (`_moved`; the cameras are independent, refined
-    together in one batch): silhouette L2 (both blurred by `sigma` pixels) plus the weighted shading
-    misfit, through the differentiable renderer. The light is fitted once per camera, at the start
-    (refitting it every step costs more than the rendering and changes little)."""
-    from .distortions import gaussian_blur
+def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
+    """Hard coverage (B, 1, S, S) of each camera's size x size picture and a world point (B, S*S, 3)
+    at every pixel: the visible surface on the object, and on the background the pixel's ray at the
+    object's mean depth (the silhouette stage's flow is needed just outside the silhouette too)."""
+    from .render import surface_points
 
-    target, target_mask = level
+    n_batch = len(cameras)
+    out = MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size)
+    fragments = out.fragments
+    points, _ = surface_points(mesh, fragments, cameras)
+    view = cameras.view_matrix()
+    rotation, translation = view[:, :3, :3], view[:, :3, 3]
+    camera_points = (rotation.index_select(0, fragments.batch) @ points[..., None])[..., 0] + translation.index_select(0, fragments.batch)
+    depth = (-camera_points[:, 2]).new_zeros(n_batch * size * size).index_copy(0, fragments.pixel, -camera_points[:, 2])
+    count = depth.new_zeros(n_batch).index_add(0, fragments.batch, torch.ones_like(fragments.batch, dtype=depth.dtype))
+    mean_depth = depth.new_zeros(n_batch).index_add(0, fragments.batch, -camera_points[:, 2]) / count.clamp_min(1)
+    covered = out.rgba[..., 3].reshape(n_batch, -1) > 0.5
+    depth = torch.where(covered, depth.reshape(n_batch, -1), mean_depth[:, None])  # (B, S*S)
+    centres = (torch.arange(size, dtype=depth.dtype) + 0.5) / size * 2 - 1
+    ndc_y, ndc_x = torch.meshgrid(-centres, centres, indexing="ij")
+    focal = 1.0 / math.tan(math.radians(cameras.fov_y) / 2)
+    x = (ndc_x.reshape(1, -1) - cameras.principal[0]) / focal * depth
+    y = (ndc_y.reshape(1, -1) - cameras.principal[1]) / focal * depth
+    in_camera = torch.stack([x, y, -depth], -1)  # (B, S*S, 3)
+    world = ((in_camera - translation[:, None]) @ rotation)  # R^T (p - t), row vectors
+    return out.rgba[..., 3][:, None], world
+
+
+def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, iterations: int = 10,
+                        step: float = 0.25) -> Cameras:
+    """Gauss-Newton on a rigid move of each camera of `start` (`_moved`; independent, one batch) that
+    brings its silhouette onto the picture's, both blurred by `sigma` pixels. The Jacobian is the
+    blurred silhouette's gradient times each pose coordinate's screen flow (as `_flow_jacobian`), so an
+    iteration costs one hard render and no backward pass; a camera whose step does not lower its cost
+    keeps its pose and damps harder (Levenberg-Marquardt)."""
+    from .distortions import gaussian_blur
+    from .render import clip_to_screen
+
+    _, target_mask = level
     size = target_mask.shape[-1]
-    blurred_target = gaussian_blur(target_mask, sigma)
-    renderer = MeshRenderer()
-    delta = torch.zeros(len(start), 6, requires_grad=True)
-    light = _fitted_light(mesh, start, level) if shading_weight > 0 else None
-    optimizer = torch.optim.Adam([delta], lr=lr)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps)
-    for _ in range(steps):
-        camera = _moved(start, delta, size)
-        out = renderer(mesh, camera, lights_at(camera.eye.detach()), size, size)
-        cover = out.rgba[..., 3].unsqueeze(1)
-        # Per camera: the sum over cameras leaves each camera's gradient its own.
-        loss = ((gaussian_blur(cover, sigma) - blurred_target) ** 2).mean(dim=(1, 2, 3)).sum() * (1 + sigma) ** 2
-        if shading_weight > 0:
-            loss = loss + shading_weight * _shading_misfit(mesh, out.fragments, camera, target, target_mask,
-                                                                 light).sum()
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        schedule.step()
+    n_batch = len(start)
+    blurred_target = gaussian_blur(target_mask, sigma).reshape(1, -1)
+    probes = step * torch.cat([torch.eye(6), -torch.eye(6)])  # (12, 6)
+    repeat = lambda c, k: replace(c, eye=c.eye.repeat(k, 1), at=c.at.repeat(k, 1), up=c.up.repeat(k, 1))  # noqa: E731
+    delta = torch.zeros(n_batch, 6)
+    damping = torch.full((n_batch,), 1e-3)
+
+    def evaluate(delta):
+        cover, points = _pixel_points(mesh, _moved(start, delta, size), size)
+        blurred = gaussian_blur(cover, sigma)
+        return blurred, points, ((blurred.reshape(n_batch, -1) - blurred_target) ** 2).sum(1)
+
     with torch.no_grad():
-        return _moved(start, delta.detach(), size)
+        blurred, points, cost = evaluate(delta)
+        for _ in range(iterations):
+            moved = _moved(repeat(start, 12), delta.repeat(12, 1) + probes.repeat_interleave(n_batch, 0), size)
+            screen = clip_to_screen(moved.world_to_clip(points.repeat(12, 1, 1), 1.0), size, size)
+            screen = screen.reshape(12, n_batch, -1, 2)
+            flow = (screen[:6] - screen[6:]) / (2 * step)  # (6, B, S*S, 2)
+            gradient_y, gradient_x = torch.gradient(blurred[:, 0], dim=(1, 2))
+            jacobian = -(gradient_x.reshape(1, n_batch, -1) * flow[..., 0]
+                         + gradient_y.reshape(1, n_batch, -1) * flow[..., 1]).permute(1, 2, 0)  # (B, S*S, 6)
+            residual = blurred.reshape(n_batch, -1) - blurred_target
+            normal = jacobian.transpose(1, 2) @ jacobian
+            scale = normal.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-12)
+            update = -torch.linalg.solve(normal + (damping * scale)[:, None, None] * torch.eye(6),
+                                         (jacobian.transpose(1, 2) @ residual[..., None])[..., 0])
+            trial_blurred, trial_points, trial_cost = evaluate(delta + update)
+            better = trial_cost < cost
+            delta = torch.where(better[:, None], delta + update, delta)
+            blurred = torch.where(better[:, None, None, None], trial_blurred, blurred)
+            points = torch.where(better[:, None, None], trial_points, points)
+            cost = torch.where(better, trial_cost, cost)
+            damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-6, 1e6)
+            if bool((update.abs().amax(1) < 0.01).all()):
+                break
+        return _moved(start, delta, size)
 
 
 def _working_size(picture: torch.Tensor, mask: torch.Tensor, longest: int = WORKING_SIZE):
@@ -416,8 +442,7 @@ def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_ang
 
 
 def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, background: torch.Tensor,
-             candidates: int = 400, keep: int = 8, steps: int = 30,
-             shading_weight: float = 0.3, lr: float = 0.5, fov_y: float = FOV,
+             candidates: int = 400, keep: int = 8, shading_weight: float = 0.3, fov_y: float = FOV,
              texture_refine: bool = True) -> Registration:
     """Find the camera of `picture` (3, H, W) in [0, 1] of `mesh` (one mesh in the canonical frame);
     `mask` (H, W) marks the object's pixels; `fov_y` is the picture's vertical field of view (its
@@ -431,15 +456,22 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     search = Cameras(DISTANCE * directions, torch.zeros_like(directions), _up_for(directions), fov,
                      principal=principal)
     search = _center_objects(mesh, search, COMPARE_SIZE)
-    scores = torch.cat([_scores(mesh, search[list(range(first, min(candidates, first + 32)))], levels[COMPARE_SIZE],
-                                shading_weight)[0] for first in range(0, candidates, 32)])
+    # Silhouette overlap first (a render each); the light fits of the shading term only for the views
+    # that overlap best.
+    chunks = [list(range(first, min(candidates, first + 32))) for first in range(0, candidates, 32)]
+    overlap = torch.cat([_overlaps(mesh, search[chunk], levels[COMPARE_SIZE]) for chunk in chunks])
+    shortlist = overlap.topk(min(candidates, SHADED_CANDIDATES)).indices.tolist()
+    scores = torch.full((candidates,), -math.inf)
+    for first in range(0, len(shortlist), 32):
+        chunk = shortlist[first:first + 32]
+        scores[chunk] = _scores(mesh, search[chunk], levels[COMPARE_SIZE], shading_weight)[0]
     best = _distinct(scores, directions, keep)
 
-    # 2. Refine the best few coarsely, then the best of them finely (blurred silhouettes first: their
-    # gradients reach further than the one-pixel band of the splat's).
+    # 2. Refine the best few coarsely, then the best of them finely, on blurred silhouettes (a wider
+    # blur first: its basin is wider).
     refined = search[best]
-    for sigma in (3.0, 1.5):
-        refined = _refine(mesh, refined, levels[COMPARE_SIZE], sigma, steps, shading_weight, lr)
+    for sigma in COARSE_SILHOUETTE_SIGMAS:
+        refined = _refine_silhouettes(mesh, refined, levels[COMPARE_SIZE], sigma)
     # Symmetric shapes leave several views with the same silhouette: the texture tells them apart. The
     # best-scored candidate stays unless another fits the texture clearly better: a candidate a few
     # degrees off fits the fine bands as badly as a wrong view (it was the right one in 55 of 60 test
@@ -450,7 +482,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     pick = min(range(len(refined)), key=misfits.__getitem__)
     camera = refined[[pick if misfits[pick] < PICK_MARGIN * misfits[0] else 0]]
     for sigma in FINE_SILHOUETTE_SIGMAS:
-        camera = _refine(mesh, camera, levels[SEARCH_SIZE], sigma, steps, shading_weight, lr)
+        camera = _refine_silhouettes(mesh, camera, levels[SEARCH_SIZE], sigma)
 
     # 3. The same camera for the whole picture, refined there on the texture.
     camera = replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
