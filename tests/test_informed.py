@@ -103,6 +103,17 @@ def test_registration_recovers_the_view():
     assert after < 1.0 and after < before, (before, after)
 
 
+def test_texture_refinement_survives_a_flat_picture():
+    """A picture of one colour gives the texture stage nothing to align on: it still returns a finite
+    camera (a singular Gauss-Newton system, from a band with no gradient, is a stop, not a crash)."""
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    flat = replace(mesh, textures=[torch.full_like(t, 0.6) for t in mesh.textures])
+    mask = (MeshRenderer()(flat, camera, lights, 96, 96).rgba[..., 3] > 0.5).float()
+    picture = torch.full((1, 3, 96, 96), 0.3)
+    found = refine_on_texture(flat, camera, picture, mask)
+    assert torch.isfinite(found.eye).all() and torch.isfinite(found.at).all()
+
+
 def test_camera_metadata_round_trip_and_errors(tmp_path, capsys):
     assert main(["render", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.png"), "--width", "64",
                  "--height", "48", "--camera", "1,-3,2"]) == 0

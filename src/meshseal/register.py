@@ -391,8 +391,10 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         for _ in range(iterations):
             jacobian = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, step)
             normal = jacobian.T @ jacobian
-            damping = 1e-3 * normal.diagonal().mean() * torch.eye(6)
-            update = -torch.linalg.solve(normal + damping, jacobian.T @ base)
+            scale = float(normal.diagonal().mean())
+            if not scale > 1e-12:  # a flat band: nothing to align on (or not a number)
+                break
+            update = -torch.linalg.solve(normal + 1e-3 * scale * torch.eye(6), jacobian.T @ base)
             for fraction in (1.0, 0.5, 0.25):
                 trial, trial_banded = residual(delta + fraction * update, with_image=True)
                 if float((trial[0] ** 2).sum()) < cost:
