@@ -10,7 +10,7 @@ detection rate at the FPR 1e-6 threshold and exact-message rate; and the bit acc
 camera for comparison. The paper's Table 9 (decoder trained through its own renderer) stands beside.
 
     python experiments/engines.py --out docs/engines.md [--engines ours gl cycles eevee workbench]
-        [--data data --meshes 60] [--views 2] [--size 256] [--sampler seed]
+        [--data data --meshes 60] [--views 2] [--size 256] [--sampler seed] [--jsonl FILE [--report]]
 """
 
 from __future__ import annotations
@@ -82,10 +82,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="markdown file for the table")
     parser.add_argument("--jsonl", type=Path, default=None,
                         help="one JSON line per picture; pictures already in it are not measured again (resume)")
+    parser.add_argument("--report", action="store_true",
+                        help="write the table from the pictures already in --jsonl, measuring nothing (a partial run)")
     args = parser.parse_args()
 
-    wm = meshseal.load()
-    renderers = {engine: make_renderer(engine) for engine in args.engines}
     rows: dict[str, list[dict]] = {engine: [] for engine in args.engines}
     done = set()
     if args.jsonl and args.jsonl.exists():
@@ -94,6 +94,14 @@ def main() -> None:
             if row["engine"] in rows:
                 rows[row["engine"]].append(row)
                 done.add((row["mesh"], row["engine"], row["view"]))
+    if args.report:
+        table = summary(rows, args, None)
+        print(table)
+        if args.out:
+            args.out.write_text(table)
+        return
+    wm = meshseal.load()
+    renderers = {engine: make_renderer(engine) for engine in args.engines}
     log = args.jsonl.open("a") if args.jsonl else None
     started = time.perf_counter()
     for index, (name, mesh) in enumerate(meshes(args)):
@@ -152,9 +160,11 @@ def main() -> None:
 
 
 def summary(rows: dict[str, list[dict]], args, seconds: float) -> str:
-    source = "the textured fixtures" if args.data is None else f"{args.meshes} test meshes of {args.data}"
-    lines = [f"Pictures: {source}, {args.views} views each ('{args.sampler}' views), {args.size}^2, grey background, "
-             f"saved as PNG without metadata; camera by registration. {seconds / 60:.1f} minutes.", "",
+    meshes = len({row["mesh"] for group in rows.values() for row in group})
+    source = "textured fixtures" if args.data is None else f"test meshes of {args.data} (the first {args.meshes} asked)"
+    took = "" if seconds is None else f" {seconds / 60:.1f} minutes."
+    lines = [f"Pictures: {meshes} {source}, {args.views} views each ('{args.sampler}' views), {args.size}^2, grey "
+             f"background, saved as PNG without metadata; camera by registration.{took}", "",
              "| engine | pictures | bit acc. (registered) | bit acc. (camera known) | registration success | "
              "detected (FPR 1e-6) | exact message | object PSNR | object FLIP | paper (Table 9) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
