@@ -7,6 +7,7 @@ Deterministic for a seed: the same meshes, messages, cameras and lights every ti
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -119,24 +120,31 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         for view in range(views):
             picture = pictures[view].permute(1, 2, 0).cpu().numpy()
             started = time.perf_counter()
-            reading = watermarker.read(picture, original, register=True)
+            reading = _read_or_none(watermarker, picture, original, register=True)
             seconds = time.perf_counter() - started
-            known = watermarker.read(picture, original, camera=cameras[[view]])
-            readings.append(reading)
-            found, truth = watermarker.decide([reading]), watermarker.decide([known])
+            known = _read_or_none(watermarker, picture, original, camera=cameras[[view]])
             agree = lambda d: float(np.mean([int(b) for b in d.bits] == message[0].cpu().numpy()))  # noqa: E731
-            row = {"bit_acc": agree(found), "bit_acc_known": agree(truth), "iou": reading.registration_iou,
-                   "pose": pose_error(original, cameras[[view]], reading.found, size, size), "seconds": seconds}
+            # A picture `meshseal detect` refuses (e.g. no object found) counts as read at chance.
+            found, truth = (None if r is None else watermarker.decide([r]) for r in (reading, known))
+            row = {"bit_acc": 0.5 if found is None else agree(found), "bit_acc_known": 0.5 if truth is None else agree(truth),
+                   "iou": 0.0 if reading is None else reading.registration_iou, "unreadable": reading is None,
+                   "pose": math.inf if reading is None else pose_error(original, cameras[[view]], reading.found, size, size),
+                   "seconds": seconds}
+            if reading is not None:
+                readings.append(reading)
             if coded:
-                row |= {"detected": bool(found.detected), "exact": found.message == identity,
-                        "detected_known": bool(truth.detected), "exact_known": truth.message == identity}
+                row |= {"detected": found is not None and bool(found.detected),
+                        "exact": found is not None and found.message == identity,
+                        "detected_known": truth is not None and bool(truth.detected),
+                        "exact_known": truth is not None and truth.message == identity}
             rows.append(row)
             if log is not None:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
         if coded and views > 1:
-            decision = watermarker.decide(readings)
-            pooled.append({"detected": bool(decision.detected), "exact": decision.message == identity})
+            decision = watermarker.decide(readings) if readings else None
+            pooled.append({"detected": decision is not None and bool(decision.detected),
+                           "exact": decision is not None and decision.message == identity})
     model.train(was_training)
     mean = lambda key, table=rows: float(np.mean([r[key] for r in table]))  # noqa: E731
     pose = torch.tensor([r["pose"] for r in rows])
@@ -147,10 +155,21 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
               "registration_success": float(success.float().mean()), "registration_iou": mean("iou"),
               "pose_error_px": {q: round(float(pose.nanquantile(v)), 3) for q, v in (("median", 0.5), ("p90", 0.9),
                                                                                    ("max", 1.0))},
-              "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size}
+              "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size,
+              "n_unreadable": sum(r["unreadable"] for r in rows)}
     if coded:
         result |= {"tpr": mean("detected"), "exact_message": mean("exact"), "tpr_known_camera": mean("detected_known"),
                    "exact_message_known_camera": mean("exact_known"), "fpr_threshold": payload.FPR}
     if pooled:
         result |= {"tpr_pooled": mean("detected", pooled), "exact_message_pooled": mean("exact", pooled)}
     return result
+
+
+def _read_or_none(watermarker, picture, original, **options):
+    """`Watermarker.read`, or None where it refuses the picture with a one-line error."""
+    from .errors import MeshsealError
+
+    try:
+        return watermarker.read(picture, original, **options)
+    except MeshsealError:
+        return None
