@@ -153,8 +153,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     result = {"bit_acc": float(accuracy.mean()), "bit_acc_std": float(accuracy.std()) if len(rows) > 1 else 0.0,
               "bit_acc_known_camera": mean("bit_acc_known"),
               "registration_success": float(success.float().mean()), "registration_iou": mean("iou"),
-              "pose_error_px": {q: round(float(pose.nanquantile(v)), 3) for q, v in (("median", 0.5), ("p90", 0.9),
-                                                                                   ("max", 1.0))},
+              "pose_error_px": {"median": round(float(pose.nanquantile(0.5)), 3), "p90": round(float(pose.nanquantile(0.9)), 3),
+                                "max": round(float(pose[~pose.isnan()].max()), 3) if bool((~pose.isnan()).any()) else math.nan},
               "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size,
               "n_unreadable": sum(r["unreadable"] for r in rows)}
     if coded:
