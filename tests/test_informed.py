@@ -192,3 +192,16 @@ def test_shipped_default_model_round_trips_on_the_bunny(tmp_path, capsys):
         pixels = np.asarray(Image.open(tmp_path / f"v_{index}.png").convert("RGB"), dtype=np.float32) / 255
         found = boxes_from_mask(torch.from_numpy(object_mask(pixels)[0])[None])[0]
         assert result["camera"] == "metadata" and torch.allclose(torch.tensor(result["box"]), found, atol=2.0)
+
+
+def test_object_mask_on_a_graded_background():
+    """A background ramping between two colours (a studio backdrop) is not the object: the mask is the
+    object alone, also when the object touches the frame."""
+    ramp = np.linspace(0.0, 1.0, 120, dtype=np.float32)[None, :, None]
+    picture = (0.2 + 0.5 * ramp * np.array([1.0, 0.6, 0.2], dtype=np.float32)).repeat(100, axis=0)
+    truth = np.zeros((100, 120), dtype=bool)
+    truth[30:70, 40:90] = True
+    truth[0:20, 0:15] = True  # a second part of the object, cut off by the frame's corner
+    picture[truth] = (0.9, 0.1, 0.5)
+    mask, _ = object_mask(picture)
+    assert (mask & truth).sum() / (mask | truth).sum() > 0.95

@@ -73,16 +73,38 @@ def estimate_background(image: np.ndarray) -> np.ndarray:
     return np.median(border, axis=0)
 
 
-def object_mask(image: np.ndarray, threshold: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
-    """Find the object in a picture with a plain background: (H, W, 3) float -> mask (H, W), background (3,).
+def background_plane(image: np.ndarray, threshold: float = 0.03, rounds: int = 3) -> np.ndarray:
+    """The picture's background (H, W, 3) as a linear ramp per channel (a plain colour is the flat
+    case) fitted to the border by least squares; border pixels more than `threshold` off the fit (the
+    object touching the frame) are dropped and the fit repeated."""
+    height, width = image.shape[:2]
+    ys, xs = np.mgrid[0:height, 0:width]
+    border = np.zeros((height, width), dtype=bool)
+    border[0], border[-1], border[:, 0], border[:, -1] = True, True, True, True
+    design = lambda y, x: np.stack([np.ones_like(x, dtype=np.float64), x / width, y / height], -1)  # noqa: E731
+    rows, columns = ys[border], xs[border]
+    values = image[border].astype(np.float64)
+    keep = np.ones(len(values), dtype=bool)
+    for _ in range(rounds):
+        coefficients, *_ = np.linalg.lstsq(design(rows[keep], columns[keep]), values[keep], rcond=None)
+        off = np.abs(design(rows, columns) @ coefficients - values).max(-1) > threshold
+        if off.all() or (~off == keep).all():
+            break
+        keep = ~off
+    return (design(ys, xs) @ coefficients).astype(image.dtype)
 
-    Pixels that differ from the border's median colour by more than `threshold`, cleaned up by keeping
-    the largest connected components that together hold 99 % of the area.
+
+def object_mask(image: np.ndarray, threshold: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Find the object in a picture with a plain or smoothly graded background: (H, W, 3) float ->
+    mask (H, W), background (3,) (the border's median colour).
+
+    Pixels that differ from the background (`background_plane`) by more than `threshold`, cleaned up
+    by keeping the largest connected components that together hold 99 % of the area.
     """
     from scipy import ndimage
 
     background = estimate_background(image)
-    mask = np.abs(image - background).max(axis=-1) > threshold
+    mask = np.abs(image - background_plane(image, threshold)).max(axis=-1) > threshold
     mask = ndimage.binary_opening(mask, iterations=1)
     labels, count = ndimage.label(mask)
     if count > 1:
