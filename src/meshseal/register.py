@@ -120,14 +120,14 @@ def _overlaps(mesh: MeshBatch, cameras: Cameras, level) -> torch.Tensor:
                     level[1][:, 0])
 
 
-def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(silhouette IoU - weighted shading misfit, IoU), each (B,), of cameras against the picture."""
+def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> torch.Tensor:
+    """Silhouette IoU - weighted shading misfit (B,) of cameras against the picture."""
     target, target_mask = level
     size = target_mask.shape[-1]
     with torch.no_grad():
         out = MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size)
         iou = _iou(out.rgba[..., 3], target_mask[:, 0])
-        return iou - shading_weight * _shading_misfit(mesh, out.fragments, cameras, target, target_mask), iou
+        return iou - shading_weight * _shading_misfit(mesh, out.fragments, cameras, target, target_mask)
 
 
 def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.Tensor,
@@ -171,6 +171,22 @@ def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
     return replace(start, eye=eye, at=eye + distance * forward, up=rotation_world[:, 1])
 
 
+def _screen_flow(start: Cameras, delta: torch.Tensor, points: torch.Tensor, height: int, width: int,
+                 step: float) -> torch.Tensor:
+    """How far each camera's world points (B, N, 3) move on its height x width screen per unit of each
+    of `_moved`'s six coordinates, at `delta` (B, 6) from `start` (B cameras): (6, B, N, 2) pixels, by
+    central differences of `step` (12 projections, no render). The flow of both Gauss-Newton stages."""
+    from .render import clip_to_screen
+
+    n_batch = len(start)
+    probes = step * torch.cat([torch.eye(6), -torch.eye(6)]).to(points)  # (12, 6)
+    many = replace(start, eye=start.eye.repeat(12, 1), at=start.at.repeat(12, 1), up=start.up.repeat(12, 1))
+    moved = _moved(many, delta.repeat(12, 1) + probes.repeat_interleave(n_batch, 0), height)
+    screen = clip_to_screen(moved.world_to_clip(points.repeat(12, 1, 1), width / height), height, width)
+    screen = screen.reshape(12, n_batch, -1, 2)
+    return (screen[:6] - screen[6:]) / (2 * step)
+
+
 def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
     """Hard coverage (B, 1, S, S) of each camera's size x size picture and a world point (B, S*S, 3)
     at every pixel: the visible surface on the object, and on the background the pixel's ray at the
@@ -207,14 +223,11 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
     iteration costs one hard render and no backward pass; a camera whose step does not lower its cost
     keeps its pose and damps harder (Levenberg-Marquardt)."""
     from .distortions import gaussian_blur
-    from .render import clip_to_screen
 
     _, target_mask = level
     size = target_mask.shape[-1]
     n_batch = len(start)
     blurred_target = gaussian_blur(target_mask, sigma).reshape(1, -1)
-    probes = step * torch.cat([torch.eye(6), -torch.eye(6)])  # (12, 6)
-    repeat = lambda c, k: replace(c, eye=c.eye.repeat(k, 1), at=c.at.repeat(k, 1), up=c.up.repeat(k, 1))  # noqa: E731
     delta = torch.zeros(n_batch, 6)
     damping = torch.full((n_batch,), 1e-3)
 
@@ -226,10 +239,7 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
     with torch.no_grad():
         blurred, points, cost = evaluate(delta)
         for _ in range(iterations):
-            moved = _moved(repeat(start, 12), delta.repeat(12, 1) + probes.repeat_interleave(n_batch, 0), size)
-            screen = clip_to_screen(moved.world_to_clip(points.repeat(12, 1, 1), 1.0), size, size)
-            screen = screen.reshape(12, n_batch, -1, 2)
-            flow = (screen[:6] - screen[6:]) / (2 * step)  # (6, B, S*S, 2)
+            flow = _screen_flow(start, delta, points, size, size, step)  # (6, B, S*S, 2)
             gradient_y, gradient_x = torch.gradient(blurred[:, 0], dim=(1, 2))
             jacobian = -(gradient_x.reshape(1, n_batch, -1) * flow[..., 0]
                          + gradient_y.reshape(1, n_batch, -1) * flow[..., 1]).permute(1, 2, 0)  # (B, S*S, 6)
@@ -414,16 +424,14 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     (`_moved`) carries each surface point seen at an `inside` pixel (1, H, W) along an analytic screen
     flow, and the band-passed picture `banded` (1, 3, H, W) moves with it (brightness constancy: dI =
     -grad I . flow), as in Lucas-Kanade image alignment."""
-    from .render import clip_to_screen, surface_at_pixels, surface_points
+    from .render import surface_at_pixels, surface_points
 
     height, width = banded.shape[-2:]
     fragments, _, _ = surface_at_pixels(mesh, camera, height, width)
     points, _ = surface_points(mesh, fragments, camera)
     at_pixel = points.new_zeros(height * width, 3).index_copy(0, fragments.pixel, points)
     seen = at_pixel[inside.reshape(-1)]  # (M, 3)
-    probes = _moved(camera, step * torch.cat([torch.eye(6), -torch.eye(6)]).to(points), height)
-    screen = clip_to_screen(probes.world_to_clip(seen[None].expand(12, -1, -1), width / height), height, width)
-    flow = (screen[:6] - screen[6:]) / (2 * step)  # (6, M, 2) pixels per unit of each coordinate
+    flow = _screen_flow(camera, points.new_zeros(1, 6), seen[None], height, width, step)[:, 0]  # (6, M, 2)
     gradient_y, gradient_x = torch.gradient(banded[0], dim=(1, 2))
     pick = lambda g: g.permute(1, 2, 0)[inside[0]]  # noqa: E731  (M, 3)
     jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (6, M, 3)
@@ -466,7 +474,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     scores = torch.full((candidates,), -math.inf)
     for first in range(0, len(shortlist), 32):
         chunk = shortlist[first:first + 32]
-        scores[chunk] = _scores(mesh, search[chunk], levels[COMPARE_SIZE], shading_weight)[0]
+        scores[chunk] = _scores(mesh, search[chunk], levels[COMPARE_SIZE], shading_weight)
     best = _distinct(scores, directions, keep)
 
     # 2. Refine the best few coarsely, then the best of them finely, on blurred silhouettes (a wider
