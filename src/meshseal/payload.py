@@ -30,7 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 import torch
-from scipy import stats
+from scipy import special
 
 from .errors import MeshsealError
 
@@ -270,7 +270,7 @@ def detection_pvalue(z) -> float | np.ndarray:
     z (N,) gives a float, z (..., N) an array; floored at the smallest normal float, never 0."""
     values = _as_soft(z)
     statistic = (values ** 2).sum(-1)
-    p = np.maximum(np.exp(stats.chi2.logsf(statistic, values.shape[-1])), np.finfo(float).tiny)
+    p = np.maximum(special.chdtrc(values.shape[-1], statistic), np.finfo(float).tiny)
     return float(p) if p.ndim == 0 else p
 
 
@@ -289,7 +289,7 @@ def match_pvalue(z, expected_bits) -> float | np.ndarray:
     if expected.shape != values.shape[-1:]:
         raise MeshsealError(f"expected {expected.size} bits, but the model reads {values.shape[-1]}")
     statistic = (values * (2.0 * expected - 1.0)).sum(-1) / math.sqrt(values.shape[-1])
-    p = np.maximum(np.exp(stats.norm.logsf(statistic)), np.finfo(float).tiny)
+    p = np.maximum(special.ndtr(-statistic), np.finfo(float).tiny)
     return float(p) if p.ndim == 0 else p
 
 
@@ -309,7 +309,7 @@ def binomial_pvalue(n_agree: int, n_bits: int) -> float:
     fair coins under H0 because the keystream whitens every bit."""
     if not 0 <= n_agree <= n_bits:
         raise MeshsealError(f"agreeing bits must be between 0 and {n_bits}, got {n_agree}")
-    return float(stats.binom.sf(n_agree - 1, n_bits, 0.5))
+    return sum(math.comb(n_bits, i) for i in range(n_agree, n_bits + 1)) / 2 ** n_bits  # exact, rounded once
 
 
 def detected(p: float) -> bool:
