@@ -28,11 +28,13 @@ LOWPASS = 4.0  # the texture stage compares band-passed pictures: shading (a lig
 WORKING_SIZE = 512  # longest side at which the whole picture is refined on the texture
 TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur is this many pixels
 WIDE_SIGMAS = (8.0, 4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
+WIDE_LEVEL_STILL = 0.1  # pixels: a coarsest level that moves the pose less leaves the rest as without it
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
 COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement at COMPARE_SIZE (blur, pixels)
 FINE_SILHOUETTE_SIGMAS = (1.0, 0.5)  # the picked candidate's silhouette refinement at SEARCH_SIZE
-PICK_MARGIN = 0.7
-SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading  # another candidate replaces the best-scored one only if its texture misfit is this much lower
+PICK_MARGIN = 0.7  # another candidate replaces the best-scored one only if its texture misfit is this much lower
+PICK_IOU_SLACK = 0.1  # ... and only if its refined silhouette's IoU is at most this much below the best one's
+SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
 DISTANCE = 3.5
 FOV = 60.0
 
@@ -324,28 +326,47 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     return camera
 
 
-def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
-                  margin: int):
-    """What the texture stage compares, from `camera`'s view of `picture` (1, 3, H, W): the original
-    relit to match the picture, a function rendering it from any camera and returning the band-passed
-    difference to the picture over interior pixels (at least `margin` pixels from any silhouette),
-    and the band-passed picture there. None when fewer than 64 interior pixels are left."""
-    from .distortions import gaussian_blur
+def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, margin: int):
+    """The original relit to match `picture` (1, 3, H, W) from `camera` (`pipeline.relit_residual`),
+    its hard render there (1, 3, H, W) and the interior pixels (1, H, W): on the object in both and at
+    least `margin` pixels from any silhouette, so that moves of a pixel or two never bring background
+    in. None when fewer than 64 interior pixels are left."""
     from .pipeline import relit_residual
 
     height, width = picture.shape[-2:]
-    renderer = MeshRenderer(blend="hard")
-    grow = 2 * margin + 1
     fit = relit_residual(mesh, picture, camera)
-    coverage = renderer(fit.relit, camera, fit.lights, height, width).rgba[..., 3]
-    outside = ((coverage < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
-    inside = F.max_pool2d(outside, grow, 1, margin)[:, 0] < 0.5
+    rendered = MeshRenderer(blend="hard")(fit.relit, camera, fit.lights, height, width).rgba
+    outside = ((rendered[..., 3] < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
+    inside = F.max_pool2d(outside, 2 * margin + 1, 1, margin)[:, 0] < 0.5
     if int(inside.sum()) < 64:
         return None
-    weight = inside[:, None].to(picture.dtype)
+    return fit, rendered[..., :3].permute(0, 3, 1, 2), inside
+
+
+def _band_pass(inside: torch.Tensor, sigma: float):
+    """A function band-passing pictures (B, 3, H, W) around `sigma` over the `inside` pixels only
+    (normalised blurs, so the silhouette's edge leaks nothing in)."""
+    from .distortions import gaussian_blur
+
+    weight = inside[:, None].float()
     smooth = lambda x, s: gaussian_blur(x * weight, s) / gaussian_blur(weight, s).clamp_min(1e-3)  # noqa: E731
-    band = lambda x: smooth(x, sigma) - smooth(x, LOWPASS * max(sigma, 1.0))  # noqa: E731
+    return lambda x: smooth(x, sigma) - smooth(x, LOWPASS * max(sigma, 1.0))
+
+
+def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
+                  margin: int):
+    """What the texture stage compares, from `camera`'s view of `picture` (1, 3, H, W): a function
+    rendering the relit original from any camera and returning the band-passed difference to the
+    picture over the interior pixels of `_relit_view`, the band-passed picture there, the interior and
+    the relit mesh. None when `_relit_view` is."""
+    view = _relit_view(mesh, camera, picture, mask, margin)
+    if view is None:
+        return None
+    fit, _, inside = view
+    height, width = picture.shape[-2:]
+    band = _band_pass(inside, sigma)
     target = band(picture).permute(0, 2, 3, 1)[inside].reshape(-1)
+    renderer = MeshRenderer(blend="hard")
 
     def residual(moved: Cameras, with_image: bool = False):
         """(B, M) for B cameras: every camera of `moved` renders in one batch; with `with_image`, also
@@ -360,27 +381,40 @@ def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask:
 
 
 def texture_misfit(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
-                   sigma: float = 1.0, margin: int = 2) -> float:
-    """How badly the original's texture, seen from `camera`, explains the band-passed picture
-    (1, 3, H, W): residual energy over picture energy (0: perfect, ~2: unrelated). Shading is mostly
-    outside the band, so a wrong view cannot buy a good score with a wrongly fitted light, as it can
-    with the silhouette-and-shading score. Used to pick among candidate views of symmetric shapes."""
+                   sigmas: tuple[float, ...] = (1.0,), margin: int = 2) -> float:
+    """How badly the original's texture, seen from `camera`, explains the picture (1, 3, H, W)
+    band-passed around each of `sigmas`: residual energy over picture energy, summed over the bands
+    (0: perfect, ~2 a band: unrelated). One light fit and one render serve every band. Shading is
+    mostly outside the bands, so a wrong view cannot buy a good score with a wrongly fitted light, as
+    it can with the silhouette-and-shading score. Used to pick among candidate views of symmetric
+    shapes."""
     with torch.no_grad():
-        problem = _band_problem(mesh, camera, picture, mask, sigma, margin)
-        if problem is None:
+        view = _relit_view(mesh, camera, picture, mask, margin)
+        if view is None:
             return float("inf")
-        residual, target, _, _ = problem
-        return float((residual(camera)[0] ** 2).sum() / (target ** 2).sum().clamp_min(1e-12))
+        _, rendered, inside = view
+        total = 0.0
+        for sigma in sigmas:
+            band = _band_pass(inside, sigma)
+            target, seen = (band(x).permute(0, 2, 3, 1)[inside] for x in (picture, rendered))
+            total += float(((seen - target) ** 2).sum() / (target ** 2).sum().clamp_min(1e-12))
+        return total
 
 
 def refine_on_texture_widely(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
-    """`refine_on_texture` from `camera` twice, with and without an extra coarse level (blur 8 px), keeping the result whose texture fits the picture better: the wide start pulls in poses
-    1.5-2 px off that the narrow one leaves, but its coarse bands carry some shading, which can nudge
-    an already good pose off by a few tenths of a pixel (measured on the fixtures)."""
+    """`refine_on_texture` from `camera` with and without an extra coarse level (blur 8 px), keeping
+    the result whose texture fits the picture better: the wide start pulls in poses 1.5-2 px off that
+    the narrow one leaves, but its coarse bands carry some shading, which can nudge an already good
+    pose off by a few tenths of a pixel (measured on the fixtures). When the coarse level moves the
+    pose by less than WIDE_LEVEL_STILL pixels, both runs would go on from the same place: only the
+    narrow one runs."""
     picture, mask = _working_size(picture, mask)
-    results = [refine_on_texture(mesh, camera, picture, mask, sigmas)
-               for sigmas in (WIDE_SIGMAS[1:], WIDE_SIGMAS)]
-    return min(results, key=lambda c: texture_misfit(mesh, c, picture, mask, sigma=1.0))
+    wide_start = refine_on_texture(mesh, camera, picture, mask, WIDE_SIGMAS[:1])
+    narrow = refine_on_texture(mesh, camera, picture, mask, WIDE_SIGMAS[1:])
+    if pose_error(mesh, camera, wide_start, *picture.shape[-2:]) < WIDE_LEVEL_STILL:
+        return narrow
+    wide = refine_on_texture(mesh, wide_start, picture, mask, WIDE_SIGMAS[1:])
+    return min((narrow, wide), key=lambda c: texture_misfit(mesh, c, picture, mask))
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
@@ -486,9 +520,11 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     # best-scored candidate stays unless another fits the texture clearly better: a candidate a few
     # degrees off fits the fine bands as badly as a wrong view (it was the right one in 55 of 60 test
     # pictures, and a plain minimum threw it away in 9 of them).
+    # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
     target, target_mask = levels[SEARCH_SIZE]
-    misfits = [sum(texture_misfit(mesh, refined[[i]], target, target_mask[:, 0], sigma) for sigma in PICK_SIGMAS)
-               for i in range(len(refined))]
+    overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
+    misfits = [texture_misfit(mesh, refined[[i]], target, target_mask[:, 0], PICK_SIGMAS)
+               if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK else math.inf for i in range(len(refined))]
     pick = min(range(len(refined)), key=misfits.__getitem__)
     camera = refined[[pick if misfits[pick] < PICK_MARGIN * misfits[0] else 0]]
     for sigma in FINE_SILHOUETTE_SIGMAS:
