@@ -28,6 +28,8 @@ LOWPASS = 4.0  # the texture stage compares band-passed pictures: shading (a lig
 WORKING_SIZE = 512  # longest side at which the whole picture is refined on the texture
 TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur is this many pixels
 WIDE_SIGMAS = (8.0, 4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
+ROBUST_SCALE = 2.0  # the texture stage's Cauchy scale, in median absolute residuals
+ROBUST_MIN_SIGMA = 2.0  # ... on levels blurred this much or more (finer ones: least squares)
 WIDE_LEVEL_STILL = 0.1  # pixels: a coarsest level that moves the pose less leaves the rest as without it
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
 COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement at COMPARE_SIZE (blur, pixels)
@@ -431,22 +433,28 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         delta = torch.zeros(6, dtype=picture.dtype)
         base, banded = residual(delta, with_image=True)
         base = base[0]
-        cost = float((base ** 2).sum())
+        # Cauchy weights (IRLS) on the coarse levels: what the relit original cannot explain there (a
+        # light misfit at creases) counts less than texture that lines up. Scale fixed per level.
+        robust = ROBUST_SCALE * float(base.abs().median()) + 1e-6 if sigma >= ROBUST_MIN_SIGMA else None
+        loss = (lambda r: float((r ** 2).sum())) if robust is None else \
+            (lambda r: float(torch.log1p((r / robust) ** 2).sum()))  # noqa: E731
+        cost = loss(base)
         for _ in range(iterations):
             jacobian = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, step)
-            normal = jacobian.T @ jacobian
+            weight = torch.ones_like(base) if robust is None else 1.0 / (1.0 + (base / robust) ** 2)
+            normal = jacobian.T @ (weight[:, None] * jacobian)
             scale = float(normal.diagonal().mean())
             if not scale > 1e-12:  # a flat band: nothing to align on (or not a number)
                 break
-            update = -torch.linalg.solve(normal + 1e-3 * scale * torch.eye(6), jacobian.T @ base)
+            update = -torch.linalg.solve(normal + 1e-3 * scale * torch.eye(6), jacobian.T @ (weight * base))
             for fraction in (1.0, 0.5, 0.25):
                 trial, trial_banded = residual(delta + fraction * update, with_image=True)
-                if float((trial[0] ** 2).sum()) < cost:
+                if loss(trial[0]) < cost:
                     break
             else:
                 break
             delta, base, banded = delta + fraction * update, trial[0], trial_banded
-            cost = float((base ** 2).sum())
+            cost = loss(base)
             if float((fraction * update).abs().max()) < 0.01:  # converged: a hundredth of a pixel
                 break
         return _moved(camera, delta, height)
