@@ -286,7 +286,7 @@ def main() -> None:
     detector = LatticeDetector(encoder, window=args.window, stride=args.window // 2)
     renderer = MeshRenderer()
     generator = torch.Generator().manual_seed(args.seed)
-    accuracies, clean_scores, rows = [], [], []
+    accuracies, rows = [], []
     for item in seed_protocol_items(args.data, args.meshes, args.seed, args.stride):
         message = torch.randint(0, 2, (1, args.bits), generator=generator).float()
         texture = item["texture"][None]
