@@ -153,8 +153,10 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     result = {"bit_acc": float(accuracy.mean()), "bit_acc_std": float(accuracy.std()) if len(rows) > 1 else 0.0,
               "bit_acc_known_camera": mean("bit_acc_known"),
               "registration_success": float(success.float().mean()), "registration_iou": mean("iou"),
-              "pose_error_px": {"median": round(float(pose.nanquantile(0.5)), 3), "p90": round(float(pose.nanquantile(0.9)), 3),
-                                "max": round(float(pose[~pose.isnan()].max()), 3) if bool((~pose.isnan()).any()) else math.nan},
+              # Quantiles count a refused picture as infinitely off; max is over the pictures read; a
+              # figure that is not finite is null (JSON has no infinity).
+              "pose_error_px": {"median": _finite(pose.nanquantile(0.5)), "p90": _finite(pose.nanquantile(0.9)),
+                                "max": _finite(pose[pose.isfinite()].max()) if bool(pose.isfinite().any()) else None},
               "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size,
               "n_unreadable": sum(r["unreadable"] for r in rows)}
     if coded:
@@ -163,6 +165,11 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     if pooled:
         result |= {"tpr_pooled": mean("detected", pooled), "exact_message_pooled": mean("exact", pooled)}
     return result
+
+
+def _finite(value) -> float | None:
+    value = float(value)
+    return round(value, 3) if math.isfinite(value) else None
 
 
 def _read_or_none(watermarker, picture, original, **options):
