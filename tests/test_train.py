@@ -168,3 +168,18 @@ def test_finetune_refuses_a_matched_filter(dataset, tmp_path):
     with pytest.raises(meshseal.MeshsealError, match="nothing to fine-tune"):
         finetune(meshseal.load().model, MeshDataset(dataset, "train"), MeshDataset(dataset, "test"),
                  FinetuneConfig(engine="gl"), tmp_path / "ft")
+
+
+def test_registered_eval_counts_refused_pictures_and_stays_strict_json(dataset, monkeypatch):
+    """A picture `meshseal detect` refuses counts at chance and as infinitely off in the quantiles; the
+    report stays strict JSON (no Infinity or NaN) when every picture is refused."""
+    from meshseal import evaluate as E
+    from meshseal.data.dataset import MeshDataset
+
+    reading = E._read_or_none
+    monkeypatch.setattr(E, "_read_or_none", lambda w, p, o, **options:
+                        None if options.get("register") else reading(w, p, o, **options))
+    result = E.evaluate_registered(meshseal.load().model, MeshDataset(dataset, "test"), n_meshes=2, size=64)
+    assert result["n_unreadable"] == 2 and result["bit_acc"] == 0.5 and result["registration_success"] == 0.0
+    assert result["pose_error_px"] == {"median": None, "p90": None, "max": None}
+    json.dumps(result, allow_nan=False)
