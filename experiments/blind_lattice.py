@@ -56,13 +56,14 @@ class LatticeEncoder(nn.Module):
 
     def __init__(self, n_bits: int, period: int = 8, cells: int = 8, pilot_share: float = 0.5,
                  colour: str = "blue-yellow", texture_psnr: float = 40.0, window: int = 5, floor: float = 0.3,
-                 seed: int = 0):
+                 seed: int = 0, grating: float = 0.0):
         super().__init__()
         chips = cells * cells
         if chips & (chips - 1) or n_bits + 1 >= chips:
             raise ValueError(f"{cells}x{cells} chips (a power of two) must exceed n_bits + 1")
         self.n_bits, self.period, self.cells, self.pilot_share = n_bits, period, cells, pilot_share
         self.texture_psnr, self.window, self.floor, self.seed = texture_psnr, window, floor, seed
+        self.grating = grating  # share of the power in two sync gratings, one period along u and along v
         self.register_buffer("colour", F.normalize(torch.tensor(COLOURS[colour]), dim=0))
         pilot, codes = self._draw(seed)
         self.register_buffer("pilot", pilot)
@@ -82,7 +83,10 @@ class LatticeEncoder(nn.Module):
     def tile(self, message: torch.Tensor) -> torch.Tensor:
         """Bits (B, N) -> chip values (B, n, n), unit mean square."""
         data = torch.einsum("bk,kij->bij", 2.0 * message - 1.0, self.codes) / math.sqrt(self.n_bits)
-        return math.sqrt(self.pilot_share) * self.pilot + math.sqrt(1.0 - self.pilot_share) * data
+        keyed = math.sqrt(self.pilot_share) * self.pilot + math.sqrt(1.0 - self.pilot_share) * data
+        phase = 2 * math.pi * (torch.arange(self.cells) + 0.5) / self.cells
+        grating = torch.cos(phase)[:, None] + torch.cos(phase)[None, :]  # unit mean square
+        return math.sqrt(1.0 - self.grating) * keyed + math.sqrt(self.grating) * grating.to(keyed)
 
     def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
         """texture (B, 3, H, W) in [0, 1] (H, W multiples of the period), message (B, N) -> marked."""
@@ -160,6 +164,36 @@ def lattice_basis(peaks: list[tuple[np.ndarray, float]]) -> np.ndarray | None:
     return None
 
 
+def spectral_basis(patch: np.ndarray, weight: np.ndarray, min_period: float, max_period: float) -> np.ndarray | None:
+    """The lattice of two sync gratings from a window's power spectrum: the strongest frequency in the
+    allowed band and the strongest one at least 30 degrees from it are the dual basis F; the spatial
+    basis is F^-T (pixels, columns), Gauss-reduced. A grating's spectral line grows with its amplitude
+    times the window's size, where an autocorrelation peak grows with the amplitude squared."""
+    from scipy import ndimage
+
+    full = 2 * patch.shape[0]
+    power = np.fft.fftshift(np.abs(np.fft.fft2(patch * weight, (full, full))) ** 2)
+    frequency = np.stack(np.meshgrid(np.arange(full) - full // 2, np.arange(full) - full // 2, indexing="ij"), -1) / full
+    radius = np.linalg.norm(frequency, axis=-1)
+    allowed = (radius >= 1.0 / max_period) & (radius <= 1.0 / min_period)
+    peaks = np.argwhere((power == ndimage.maximum_filter(power, size=3)) & allowed)
+    order = np.argsort(power[peaks[:, 0], peaks[:, 1]])[::-1]
+    chosen: list[np.ndarray] = []
+    for index in order[:12]:
+        y, x = peaks[index]
+        vector = frequency[y, x] + np.array([
+            _vertex(power[y - 1, x], power[y, x], power[y + 1, x]) if 0 < y < full - 1 else 0.0,
+            _vertex(power[y, x - 1], power[y, x], power[y, x + 1]) if 0 < x < full - 1 else 0.0]) / full
+        if not chosen:
+            chosen.append(vector)
+            continue
+        cross = chosen[0][0] * vector[1] - chosen[0][1] * vector[0]
+        if abs(cross) > 0.5 * np.linalg.norm(chosen[0]) * np.linalg.norm(vector):
+            dual = np.stack([chosen[0], vector], axis=1)
+            return _reduce(*np.linalg.inv(dual)) if abs(np.linalg.det(dual)) > 1e-9 else None
+    return None
+
+
 def _reduce(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Lagrange-Gauss reduction: the shortest basis of the lattice a, b span."""
     a, b = a.astype(float), b.astype(float)
@@ -190,8 +224,8 @@ class LatticeDetector:
     """Picture -> soft bits for a `LatticeEncoder`'s mark, with nothing but the picture."""
 
     def __init__(self, encoder: LatticeEncoder, window: int = 96, stride: int = 48, oversample: int = 2,
-                 min_period: float = 6.0, max_period: float = 45.0, basis_limit: int = 1):
-        self.encoder = encoder
+                 min_period: float = 6.0, max_period: float = 45.0, basis_limit: int = 1, sync: str = "autocorrelation"):
+        self.encoder, self.sync = encoder, sync
         self.window, self.stride, self.oversample = window, stride, oversample
         self.min_period, self.max_period = min_period, max_period
         n = encoder.cells * oversample
@@ -235,13 +269,17 @@ class LatticeDetector:
     def read(self, image: np.ndarray, mask: np.ndarray) -> dict:
         """image (H, W, 3) in [0, 1], mask (H, W) the object -> soft bits and what synchronisation saw."""
         signal = whiten(image, mask, self.colour)
+        # the gratings sit at the period's fundamental, which the fine whitening would mostly remove
+        sync_signal = signal if self.sync == "autocorrelation" else whiten(image, mask, self.colour, sigma=8.0)
         taper = np.outer(np.hanning(self.window), np.hanning(self.window))
         total = np.zeros((self.encoder.cells, self.encoder.cells))
         scores, used = [], 0
         for y, x in self.windows(mask):
             patch = signal[y:y + self.window, x:x + self.window]
             weight = mask[y:y + self.window, x:x + self.window] * taper
-            basis = lattice_basis(lattice_peaks(patch, weight, self.min_period, self.max_period))
+            basis = lattice_basis(lattice_peaks(patch, weight, self.min_period, self.max_period)) \
+                if self.sync == "autocorrelation" else \
+                spectral_basis(sync_signal[y:y + self.window, x:x + self.window], weight, self.min_period, self.max_period)
             if basis is None:
                 continue
             chips, score = self.align(fold(patch, weight, basis, self.encoder.cells * self.oversample))
@@ -250,6 +288,21 @@ class LatticeDetector:
             used += 1
         soft = np.einsum("kij,ij->k", self.codes, total) / (np.linalg.norm(total) / self.encoder.cells + 1e-12)
         return {"soft": soft, "windows": used, "scores": scores}
+
+
+def sphere_items(count: int):
+    """A UV sphere (icosphere, spherical UVs) with a different seed-style noise texture each time: the
+    shape spherical UVs suit best, to tell the code's limits from the mapping's."""
+    import trimesh
+
+    from meshseal.data.process import noise_texture
+
+    sphere = trimesh.creation.icosphere(5)
+    positions = torch.tensor(sphere.vertices, dtype=torch.float32)
+    for index in range(count):
+        texture = torch.tensor(noise_texture(np.random.default_rng(index), 128)).permute(2, 0, 1).float() / 255
+        yield {"id": f"sphere-{index}", "positions": positions, "uvs": spherical_uv(positions), "texture": texture,
+               "normals": torch.tensor(sphere.vertex_normals, dtype=torch.float32), "faces": torch.tensor(sphere.faces)}
 
 
 def seed_protocol_items(data: Path, count: int, seed: int, stride: int = 1):
@@ -272,6 +325,9 @@ def main() -> None:
     parser.add_argument("--cells", type=int, default=8)
     parser.add_argument("--pilot", type=float, default=0.5)
     parser.add_argument("--floor", type=float, default=0.3, help="activity mask floor (higher: flatter mark)")
+    parser.add_argument("--grating", type=float, default=0.0, help="share of the mark's power in two sync gratings")
+    parser.add_argument("--sync", choices=("autocorrelation", "spectrum"), default="autocorrelation")
+    parser.add_argument("--sphere", action="store_true", help="a UV sphere with noise textures instead of the test meshes")
     parser.add_argument("--window", type=int, default=96)
     parser.add_argument("--width", type=int, default=600)
     parser.add_argument("--height", type=int, default=400)
@@ -281,13 +337,14 @@ def main() -> None:
     parser.add_argument("--jsonl", type=Path, default=None)
     args = parser.parse_args()
 
-    encoder = LatticeEncoder(args.bits, period=args.period, cells=args.cells, pilot_share=args.pilot, floor=args.floor,
+    encoder = LatticeEncoder(args.bits, period=args.period, cells=args.cells, pilot_share=args.pilot, floor=args.floor, grating=args.grating,
                              texture_psnr=args.psnr)
-    detector = LatticeDetector(encoder, window=args.window, stride=args.window // 2)
+    detector = LatticeDetector(encoder, window=args.window, stride=args.window // 2, sync=args.sync)
     renderer = MeshRenderer()
     generator = torch.Generator().manual_seed(args.seed)
     accuracies, rows = [], []
-    for item in seed_protocol_items(args.data, args.meshes, args.seed, args.stride):
+    items = sphere_items(args.meshes) if args.sphere else seed_protocol_items(args.data, args.meshes, args.seed, args.stride)
+    for item in items:
         message = torch.randint(0, 2, (1, args.bits), generator=generator).float()
         texture = item["texture"][None]
         marked = encoder(texture, message)
