@@ -49,10 +49,11 @@ def test_texture_encoder_any_size_and_aspect():
         assert marked.shape == texture.shape
 
 
-@pytest.mark.parametrize("decoder", ["hidden", "simple", "residual"])
+@pytest.mark.parametrize("decoder,head_grid", [("hidden", 0), ("hidden", 4), ("simple", 0), ("residual", 0)])
 @pytest.mark.parametrize("stem", [1, 2, 4])
-def test_decoders_take_any_image_size(decoder, stem):
-    model = WatermarkModel(ModelConfig(n_bits=12, decoder=decoder, decoder_stem_stride=stem, **SMALL)).eval()
+def test_decoders_take_any_image_size(decoder, stem, head_grid):
+    model = WatermarkModel(ModelConfig(n_bits=12, decoder=decoder, decoder_stem_stride=stem,
+                                       decoder_head_grid=head_grid, **SMALL)).eval()
     for size in ((32, 32), (57, 91), (128, 64)):
         assert model.decode(torch.rand(2, 3, *size)).shape == (2, 12)
 

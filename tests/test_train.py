@@ -112,12 +112,18 @@ def test_cli_embed_render_detect_eval_round_trip(dataset, tmp_path, capsys):
                 "psnr_texture", "l1_normal", "l1_uv", "n_meshes", "n_views"):
         assert key in metrics
     assert metrics["n_views"] == 2 and 0 <= metrics["bit_acc"] <= 1
+    assert main(["eval", "--data", str(dataset), "--model", model, "--protocol", "seed", "--split", "all",
+                 "--json"]) == 0
+    seed_metrics = json.loads(capsys.readouterr().out)
+    assert seed_metrics["protocol"] == "seed" and seed_metrics["texture_kinds"] == ["noise", "real"]
+    assert seed_metrics["sampler"] == "seed" and seed_metrics["n_meshes"] >= 1
     # Bad input: wrong message length, not bits, unreadable image, a mesh that can't carry the mark.
     for argv in (["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--bits", "101", "--model", model],
                  ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--bits", "abcdefgh", "--model", model],
                  ["embed", str(FIXTURES / "bunny.glb"), "-o", str(FIXTURES / "bunny.glb"), "--bits", bits, "--model", model],
                  ["detect", str(FIXTURES / "LICENSES"), "--model", model],
                  ["eval", "--data", str(tmp_path), "--model", model],
+                 ["eval", "--data", str(dataset), "--model", model, "--protocol", "seed", "--sampler", "any"],
                  ["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "x.glb"), "--bits", bits, "--model", "nope"]):
         capsys.readouterr()
         assert main(argv) == 2, argv

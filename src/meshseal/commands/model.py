@@ -59,7 +59,11 @@ def register(subparsers) -> None:
     evaluate.add_argument("--model", default=None, help="shipped model name or .safetensors path")
     evaluate.add_argument("--views", type=positive_int(100), default=1, help="views per mesh (default 1)")
     evaluate.add_argument("--meshes", type=int, default=None, help="at most this many meshes (default all)")
-    evaluate.add_argument("--sampler", choices=("seed", "any"), default="seed", help="camera/light ranges")
+    evaluate.add_argument("--protocol", choices=("seed",), default=None,
+                          help="seed: the paper's protocol (its camera and light ranges, meshes with spherical UVs "
+                               "and noise or real textures: --sampler seed --texture-kinds noise,real)")
+    evaluate.add_argument("--sampler", choices=("seed", "any"), default=None,
+                          help="camera/light ranges (default seed)")
     evaluate.add_argument("--size", type=positive_int(2048), default=128, help="render size (default 128)")
     evaluate.add_argument("--distortion-3d", type=float, default=0.0, help="3D distortion strength (0..1)")
     evaluate.add_argument("--distortion-2d", type=float, default=0.0, help="2D attack strength (0..1)")
@@ -344,9 +348,16 @@ def run_eval(args) -> int:
     if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
         raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest); build one with 'meshseal data build'")
     kinds = args.texture_kinds.split(",") if args.texture_kinds else None
+    if args.protocol == "seed":
+        if args.sampler not in (None, "seed") or not set(kinds or ["noise"]) <= {"noise", "real"}:
+            raise MeshsealError("--protocol seed uses the seed sampler and noise/real textures; drop --sampler any "
+                                "and --texture-kinds own")
+        kinds = kinds or ["noise", "real"]
+    args.sampler = args.sampler or "seed"
     dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
     if len(dataset) == 0:
-        raise MeshsealError(f"{args.data}: the {args.split} split is empty")
+        kinds_note = f" of texture kinds {','.join(kinds)}" if kinds else ""
+        raise MeshsealError(f"{args.data}: the {args.split} split has no items{kinds_note}")
     if args.register:
         if not watermarker.informed:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
@@ -357,7 +368,8 @@ def run_eval(args) -> int:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, args.size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
                            distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None)
-    metrics = {"model": watermarker.name, "split": args.split, "sampler": args.sampler} | metrics
+    metrics = {"model": watermarker.name, "split": args.split, "sampler": args.sampler,
+               "protocol": args.protocol or "ours", "texture_kinds": kinds or "all"} | metrics
     if args.json:
         print(json.dumps(metrics))
     else:

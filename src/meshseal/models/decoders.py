@@ -11,10 +11,13 @@ from .blocks import ConvBNReLU
 class HiddenDecoder(nn.Module):
     """HiDDeN's decoder as in the seed: `blocks` conv-BN-ReLU blocks, the last two with stride 2, global
     average pooling, a linear layer to N bits. CPU-sized variants: `stem_stride` 2 or 4 makes the first
-    one or two blocks stride 2 as well, and `growth` 2 doubles the width at each of the last two blocks."""
+    one or two blocks stride 2 as well, and `growth` 2 doubles the width at each of the last two blocks.
+    `head_grid` g > 0 pools to g x g cells instead of one and reads all cells with the linear layer: the
+    head keeps coarse position, for view ranges narrow enough that a bit lands in about the same place
+    of the framed picture every time (the seed's protocol)."""
 
     def __init__(self, n_bits: int, channels: int = 64, blocks: int = 7, stem_stride: int = 1,
-                 growth: int = 1):
+                 growth: int = 1, head_grid: int = 0):
         super().__init__()
         if stem_stride not in (1, 2, 4):
             raise ValueError("decoder_stem_stride must be 1, 2 or 4")
@@ -28,10 +31,14 @@ class HiddenDecoder(nn.Module):
             layers.append(ConvBNReLU(in_channels, out_channels, stride=stride))
             in_channels = out_channels
         self.features = nn.Sequential(*layers)
-        self.head = nn.Linear(in_channels, n_bits)
+        self.head_grid = head_grid
+        self.head = nn.Linear(in_channels * max(1, head_grid) ** 2, n_bits)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(image).mean(dim=(2, 3)))
+        features = self.features(image)
+        if self.head_grid:
+            return self.head(nn.functional.adaptive_avg_pool2d(features, self.head_grid).flatten(1))
+        return self.head(features.mean(dim=(2, 3)))
 
 
 class SimpleCNNDecoder(nn.Module):

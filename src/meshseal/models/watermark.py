@@ -45,6 +45,7 @@ class ModelConfig:
     decoder_blocks: int = 7
     decoder_stem_stride: int = 1
     decoder_growth: int = 1
+    decoder_head_grid: int = 0  # hidden decoder: > 0 keeps a g x g grid of positions before its linear layer
     frame_size: int = 128
     uv_grid: int = 64  # informed decoder: cells per side of the un-rendered UV map
 
@@ -93,7 +94,8 @@ class WatermarkModel(nn.Module):
                                                         config.vertex_width, config.normal_strength, config.uv_strength)
         if config.decoder == "hidden":
             self.decoder = HiddenDecoder(n, config.decoder_channels, config.decoder_blocks,
-                                         config.decoder_stem_stride, config.decoder_growth)
+                                         config.decoder_stem_stride, config.decoder_growth,
+                                         config.decoder_head_grid)
         elif config.decoder == "simple":
             self.decoder = SimpleCNNDecoder(n, config.decoder_channels)
         elif config.decoder == "residual":
