@@ -139,10 +139,15 @@ def jpeg(image: torch.Tensor, quality: float) -> torch.Tensor:
     return rgb[..., :height, :width].clamp(0.0, 1.0)
 
 
+def blur_radius(sigma: float) -> int:
+    """How many pixels `gaussian_blur` reaches on each side."""
+    return max(1, int(math.ceil(2.5 * sigma)))
+
+
 def gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     if sigma <= 0:
         return image
-    radius = max(1, int(math.ceil(2.5 * sigma)))
+    radius = blur_radius(sigma)
     x = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
     kernel = torch.exp(-x * x / (2 * sigma * sigma))
     kernel = kernel / kernel.sum()

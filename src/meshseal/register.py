@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from .framing import boxes_from_mask, crop_boxes
-from .render import (Cameras, MeshBatch, MeshRenderer, PointLights, fibonacci_directions, lights_at, pixels_at,
+from .render import (Cameras, MeshBatch, MeshRenderer, PointLights, fibonacci_directions, pixels_at,
                      relight_fragments)
 
 SEARCH_SIZE = 128  # render size of the candidate views and of the refinement
@@ -30,6 +30,8 @@ TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur
 WIDE_SIGMAS = (8.0, 4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
 ROBUST_SCALE = 2.0  # the texture stage's Cauchy scale, in median absolute residuals
 ROBUST_MIN_SIGMA = 2.0  # ... on levels blurred this much or more (finer ones: least squares)
+STILL_COARSE = 0.1  # pixels of mean surface move: a step this small ends a coarse texture level (finer ones follow)
+STILL_FINE = 0.01  # ... and a fine one (sigma < ROBUST_MIN_SIGMA)
 WIDE_LEVEL_STILL = 0.1  # pixels: a coarsest level that moves the pose less leaves the rest as without it
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
 COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement at COMPARE_SIZE (blur, pixels)
@@ -116,12 +118,29 @@ def _targets(target: torch.Tensor, target_mask: torch.Tensor) -> dict[int, tuple
     return levels
 
 
+def _clip(mesh: MeshBatch, cameras: Cameras, height: int, width: int) -> torch.Tensor:
+    """The mesh's clip-space vertices (B, V, 4) for each camera of a height x width picture."""
+    positions = mesh.positions.expand(len(cameras), -1, -1) if mesh.positions.shape[0] == 1 else mesh.positions
+    return cameras.world_to_clip(positions, width / height)
+
+
+def _rasterized(mesh: MeshBatch, cameras: Cameras, height: int, width: int):
+    """Fragments and hard coverage (B, H, W) of each camera's view: what the silhouette stages need,
+    without shading."""
+    from .render.rasterizer import rasterize
+
+    fragments = rasterize(_clip(mesh, cameras, height, width), mesh.faces, height, width)
+    return fragments, (fragments.pix_to_face >= 0).to(mesh.positions.dtype)
+
+
 def _overlaps(mesh: MeshBatch, cameras: Cameras, level) -> torch.Tensor:
-    """Silhouette IoU (B,) of cameras against the picture."""
+    """Silhouette IoU (B,) of cameras against the picture (coverage only)."""
+    from .render.rasterizer import visible_faces
+
     size = level[1].shape[-1]
     with torch.no_grad():
-        return _iou(MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size).rgba[..., 3],
-                    level[1][:, 0])
+        cover = visible_faces(_clip(mesh, cameras, size, size), mesh.faces, size, size) >= 0
+        return _iou(cover, level[1][:, 0])
 
 
 def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> torch.Tensor:
@@ -129,9 +148,9 @@ def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> 
     target, target_mask = level
     size = target_mask.shape[-1]
     with torch.no_grad():
-        out = MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size)
-        iou = _iou(out.rgba[..., 3], target_mask[:, 0])
-        return iou - shading_weight * _shading_misfit(mesh, out.fragments, cameras, target, target_mask)
+        fragments, cover = _rasterized(mesh, cameras, size, size)
+        iou = _iou(cover, target_mask[:, 0])
+        return iou - shading_weight * _shading_misfit(mesh, fragments, cameras, target, target_mask)
 
 
 def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.Tensor,
@@ -198,8 +217,7 @@ def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
     from .render import surface_points
 
     n_batch = len(cameras)
-    out = MeshRenderer(blend="hard")(mesh, cameras, lights_at(cameras.eye), size, size)
-    fragments = out.fragments
+    fragments, cover = _rasterized(mesh, cameras, size, size)
     points, _ = surface_points(mesh, fragments, cameras)
     view = cameras.view_matrix()
     rotation, translation = view[:, :3, :3], view[:, :3, 3]
@@ -207,7 +225,7 @@ def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
     depth = (-camera_points[:, 2]).new_zeros(n_batch * size * size).index_copy(0, fragments.pixel, -camera_points[:, 2])
     count = depth.new_zeros(n_batch).index_add(0, fragments.batch, torch.ones_like(fragments.batch, dtype=depth.dtype))
     mean_depth = depth.new_zeros(n_batch).index_add(0, fragments.batch, -camera_points[:, 2]) / count.clamp_min(1)
-    covered = out.rgba[..., 3].reshape(n_batch, -1) > 0.5
+    covered = cover.reshape(n_batch, -1) > 0.5
     depth = torch.where(covered, depth.reshape(n_batch, -1), mean_depth[:, None])  # (B, S*S)
     centres = (torch.arange(size, dtype=depth.dtype) + 0.5) / size * 2 - 1
     ndc_y, ndc_x = torch.meshgrid(-centres, centres, indexing="ij")
@@ -216,7 +234,7 @@ def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
     y = (ndc_y.reshape(1, -1) - cameras.principal[1]) / focal * depth
     in_camera = torch.stack([x, y, -depth], -1)  # (B, S*S, 3)
     world = ((in_camera - translation[:, None]) @ rotation)  # R^T (p - t), row vectors
-    return out.rgba[..., 3][:, None], world
+    return cover[:, None], world
 
 
 def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, iterations: int = 10,
@@ -280,8 +298,8 @@ def silhouette_iou(mesh: MeshBatch, camera: Cameras, mask: torch.Tensor) -> floa
     small, small_mask = _working_size(mask[None, None].float().expand(1, 3, -1, -1), mask[None].float(), 256)
     height, width = small_mask.shape[-2:]
     with torch.no_grad():
-        alpha = MeshRenderer(blend="hard")(mesh, camera, lights_at(camera.eye), height, width).rgba[..., 3]
-    return float(_iou(alpha, small_mask)[0])
+        _, cover = _rasterized(mesh, camera, height, width)
+    return float(_iou(cover, small_mask)[0])
 
 
 def pose_error(mesh: MeshBatch, truth: Cameras, found: Cameras, height: int, width: int) -> float:
@@ -314,7 +332,10 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     iteration; `step` is the flow's finite difference). It replaced central differences of rendered
     pictures (12 renders an iteration), whose noise on fine texture stopped many refinements 0.5-2 px
     short: on 24 test pictures success went 0.54 -> 0.83 and the time halved. A step that does not
-    lower the cost is halved twice before the level stops. Works on a copy of at most WORKING_SIZE
+    lower the cost is halved twice before the level stops; a level also stops when a step moves the
+    surface by less than STILL_COARSE / STILL_FINE pixels on average (the pose's coordinates themselves
+    may keep moving by pixels along the directions a picture hardly constrains: a turn of the view
+    against a shift of the object). Works on a copy of at most WORKING_SIZE
     pixels a side."""
     picture, mask = _working_size(picture, mask)
     for sigma in sigmas:
@@ -346,13 +367,27 @@ def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: t
 
 
 def _band_pass(inside: torch.Tensor, sigma: float):
-    """A function band-passing pictures (B, 3, H, W) around `sigma` over the `inside` pixels only
-    (normalised blurs, so the silhouette's edge leaks nothing in)."""
-    from .distortions import gaussian_blur
+    """A function band-passing pictures (B, 3, H, W) around `sigma` over the `inside` (1, H, W) pixels
+    only (normalised blurs, so the silhouette's edge leaks nothing in). The blurs run on the box around
+    the inside pixels that the wider one reaches (the rest of the frame, zero, is the same as the whole
+    frame would give there), and the blurred weights once."""
+    from .distortions import blur_radius, gaussian_blur
 
-    weight = inside[:, None].float()
-    smooth = lambda x, s: gaussian_blur(x * weight, s) / gaussian_blur(weight, s).clamp_min(1e-3)  # noqa: E731
-    return lambda x: smooth(x, sigma) - smooth(x, LOWPASS * max(sigma, 1.0))
+    wide = LOWPASS * max(sigma, 1.0)
+    reach = blur_radius(wide)
+    rows, columns = inside[0].any(dim=1).nonzero()[:, 0], inside[0].any(dim=0).nonzero()[:, 0]
+    top, left = max(0, int(rows[0]) - reach), max(0, int(columns[0]) - reach)
+    box = (slice(top, int(rows[-1]) + 1 + reach), slice(left, int(columns[-1]) + 1 + reach))
+    weight = inside[:, None, box[0], box[1]].float()
+    norms = [gaussian_blur(weight, s).clamp_min(1e-3) for s in (sigma, wide)]
+
+    def band(x: torch.Tensor) -> torch.Tensor:
+        part = x[..., box[0], box[1]] * weight
+        out = x.new_zeros(x.shape)
+        out[..., box[0], box[1]] = gaussian_blur(part, sigma) / norms[0] - gaussian_blur(part, wide) / norms[1]
+        return out
+
+    return band
 
 
 def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
@@ -372,12 +407,13 @@ def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask:
 
     def residual(moved: Cameras, with_image: bool = False):
         """(B, M) for B cameras: every camera of `moved` renders in one batch; with `with_image`, also
-        the band-passed renders (B, 3, H, W)."""
+        the band-passed renders (B, 3, H, W) and their rasterization."""
         lights = PointLights(fit.lights.position.expand(len(moved), -1, -1),
                              fit.lights.intensity.expand(len(moved), -1, -1))
-        banded = band(renderer(fit.relit, moved, lights, height, width).image)
+        rendered = renderer(fit.relit, moved, lights, height, width)
+        banded = band(rendered.image)
         values = banded.permute(0, 2, 3, 1)[:, inside[0]].reshape(len(moved), -1) - target
-        return (values, banded) if with_image else values
+        return (values, banded, rendered.fragments) if with_image else values
 
     return residual, target, inside, fit.relit
 
@@ -431,7 +467,7 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         residual = lambda delta, **options: render_residual(_moved(camera, delta, height), **options)  # noqa: E731
 
         delta = torch.zeros(6, dtype=picture.dtype)
-        base, banded = residual(delta, with_image=True)
+        base, banded, fragments = residual(delta, with_image=True)
         base = base[0]
         # Cauchy weights (IRLS) on the coarse levels: what the relit original cannot explain there (a
         # light misfit at creases) counts less than texture that lines up. Scale fixed per level.
@@ -440,7 +476,7 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
             (lambda r: float(torch.log1p((r / robust) ** 2).sum()))  # noqa: E731
         cost = loss(base)
         for _ in range(iterations):
-            jacobian = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, step)
+            jacobian, flow = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, step, fragments)
             weight = torch.ones_like(base) if robust is None else 1.0 / (1.0 + (base / robust) ** 2)
             normal = jacobian.T @ (weight[:, None] * jacobian)
             scale = float(normal.diagonal().mean())
@@ -448,28 +484,31 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
                 break
             update = -torch.linalg.solve(normal + 1e-3 * scale * torch.eye(6), jacobian.T @ (weight * base))
             for fraction in (1.0, 0.5, 0.25):
-                trial, trial_banded = residual(delta + fraction * update, with_image=True)
+                trial, trial_banded, trial_fragments = residual(delta + fraction * update, with_image=True)
                 if loss(trial[0]) < cost:
                     break
             else:
                 break
-            delta, base, banded = delta + fraction * update, trial[0], trial_banded
+            delta, base, banded, fragments = delta + fraction * update, trial[0], trial_banded, trial_fragments
             cost = loss(base)
-            if float((fraction * update).abs().max()) < 0.01:  # converged: a hundredth of a pixel
+            # Converged when the step moves the surface by less than `still` pixels on average (the
+            # pose's coordinates may still move along directions the picture hardly constrains).
+            moved = float((flow * (fraction * update)[:, None, None]).sum(0).norm(dim=-1).mean())
+            if moved < (STILL_COARSE if sigma >= ROBUST_MIN_SIGMA else STILL_FINE):
                 break
         return _moved(camera, delta, height)
 
 
 def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, inside: torch.Tensor,
-                   step: float) -> torch.Tensor:
+                   step: float, fragments) -> torch.Tensor:
     """The texture stage's Jacobian (M, 6) at `camera` from one render instead of twelve: a rigid move
     (`_moved`) carries each surface point seen at an `inside` pixel (1, H, W) along an analytic screen
     flow, and the band-passed picture `banded` (1, 3, H, W) moves with it (brightness constancy: dI =
-    -grad I . flow), as in Lucas-Kanade image alignment."""
-    from .render import surface_at_pixels, surface_points
+    -grad I . flow), as in Lucas-Kanade image alignment. `fragments`: the rasterization of `banded`'s
+    render. Also returns the flow (6, M, 2): how far a step moves the surface on screen."""
+    from .render import surface_points
 
     height, width = banded.shape[-2:]
-    fragments, _, _ = surface_at_pixels(mesh, camera, height, width)
     points, _ = surface_points(mesh, fragments, camera)
     at_pixel = points.new_zeros(height * width, 3).index_copy(0, fragments.pixel, points)
     seen = at_pixel[inside.reshape(-1)]  # (M, 3)
@@ -477,7 +516,7 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     gradient_y, gradient_x = torch.gradient(banded[0], dim=(1, 2))
     pick = lambda g: g.permute(1, 2, 0)[inside[0]]  # noqa: E731  (M, 3)
     jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (6, M, 3)
-    return jacobian.reshape(6, -1).T
+    return jacobian.reshape(6, -1).T, flow
 
 
 def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0) -> list[int]:
