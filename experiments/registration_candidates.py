@@ -48,7 +48,8 @@ def main() -> None:
 
     def keep_candidates(mesh, cameras, level, sigma, *rest, **options):
         out = refine(mesh, cameras, level, sigma, *rest, **options)
-        refined["candidates"] = out  # the candidates' silhouette stage; the last call (sigma 1.5) stays
+        if sigma == registration.COARSE_SILHOUETTE_SIGMAS[-1]:  # the candidates' silhouette stage, done
+            refined["candidates"] = out
         return out
 
     registration._refine_silhouettes = keep_candidates
