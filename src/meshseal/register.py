@@ -30,8 +30,6 @@ TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur
 WIDE_SIGMAS = (8.0, 4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
 ROBUST_SCALE = 2.0  # the texture stage's Cauchy scale, in median absolute residuals
 ROBUST_MIN_SIGMA = 2.0  # ... on levels blurred this much or more (finer ones: least squares)
-STILL_COARSE = 0.1  # pixels of mean surface move: a step this small ends a coarse texture level (finer ones follow)
-STILL_FINE = 0.01  # ... and a fine one (sigma < ROBUST_MIN_SIGMA)
 WIDE_LEVEL_STILL = 0.1  # pixels: a coarsest level that moves the pose less leaves the rest as without it
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
 COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement at COMPARE_SIZE (blur, pixels)
@@ -332,10 +330,7 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     iteration; `step` is the flow's finite difference). It replaced central differences of rendered
     pictures (12 renders an iteration), whose noise on fine texture stopped many refinements 0.5-2 px
     short: on 24 test pictures success went 0.54 -> 0.83 and the time halved. A step that does not
-    lower the cost is halved twice before the level stops; a level also stops when a step moves the
-    surface by less than STILL_COARSE / STILL_FINE pixels on average (the pose's coordinates themselves
-    may keep moving by pixels along the directions a picture hardly constrains: a turn of the view
-    against a shift of the object). Works on a copy of at most WORKING_SIZE
+    lower the cost is halved twice before the level stops. Works on a copy of at most WORKING_SIZE
     pixels a side."""
     picture, mask = _working_size(picture, mask)
     for sigma in sigmas:
@@ -476,7 +471,7 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
             (lambda r: float(torch.log1p((r / robust) ** 2).sum()))  # noqa: E731
         cost = loss(base)
         for _ in range(iterations):
-            jacobian, flow = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, step, fragments)
+            jacobian = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, step, fragments)
             weight = torch.ones_like(base) if robust is None else 1.0 / (1.0 + (base / robust) ** 2)
             normal = jacobian.T @ (weight[:, None] * jacobian)
             scale = float(normal.diagonal().mean())
@@ -491,10 +486,7 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
                 break
             delta, base, banded, fragments = delta + fraction * update, trial[0], trial_banded, trial_fragments
             cost = loss(base)
-            # Converged when the step moves the surface by less than `still` pixels on average (the
-            # pose's coordinates may still move along directions the picture hardly constrains).
-            moved = float((flow * (fraction * update)[:, None, None]).sum(0).norm(dim=-1).mean())
-            if moved < (STILL_COARSE if sigma >= ROBUST_MIN_SIGMA else STILL_FINE):
+            if float((fraction * update).abs().max()) < 0.01:  # converged: a hundredth of a pixel
                 break
         return _moved(camera, delta, height)
 
@@ -505,7 +497,7 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     (`_moved`) carries each surface point seen at an `inside` pixel (1, H, W) along an analytic screen
     flow, and the band-passed picture `banded` (1, 3, H, W) moves with it (brightness constancy: dI =
     -grad I . flow), as in Lucas-Kanade image alignment. `fragments`: the rasterization of `banded`'s
-    render. Also returns the flow (6, M, 2): how far a step moves the surface on screen."""
+    render."""
     from .render import surface_points
 
     height, width = banded.shape[-2:]
@@ -516,7 +508,7 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     gradient_y, gradient_x = torch.gradient(banded[0], dim=(1, 2))
     pick = lambda g: g.permute(1, 2, 0)[inside[0]]  # noqa: E731  (M, 3)
     jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (6, M, 3)
-    return jacobian.reshape(6, -1).T, flow
+    return jacobian.reshape(6, -1).T
 
 
 def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0) -> list[int]:
