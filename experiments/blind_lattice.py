@@ -315,6 +315,23 @@ def seed_protocol_items(data: Path, count: int, seed: int, stride: int = 1):
         yield item
 
 
+def render_pair(item: dict, texture: torch.Tensor, marked: torch.Tensor, generator: torch.Generator,
+                height: int, width: int):
+    """The original and the marked `item` rendered from one seed-range camera and light drawn from
+    `generator`, as 8-bit pictures (H, W, 3), and the mark's visibility over the object's pixels."""
+    cameras, lights = sample_seed_cameras(1, generator), sample_seed_lights(1, generator)
+    renderer, pictures = MeshRenderer(), []
+    for tex in (texture, marked):
+        batch = MeshBatch.from_tensors(item["positions"][None], item["normals"][None], item["uvs"][None],
+                                       item["faces"], tex)
+        with torch.no_grad():
+            pictures.append(renderer(batch, cameras, lights, height, width).rgba[0])
+    original, picture = (torch.round(p[..., :3].clamp(0, 1) * 255) / 255 for p in pictures)
+    coverage = pictures[0][..., 3] > 0.5
+    return original, picture, visibility(original.permute(2, 0, 1)[None], picture.permute(2, 0, 1)[None],
+                                          coverage[None])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("data"))
@@ -340,7 +357,6 @@ def main() -> None:
     encoder = LatticeEncoder(args.bits, period=args.period, cells=args.cells, pilot_share=args.pilot, floor=args.floor, grating=args.grating,
                              texture_psnr=args.psnr)
     detector = LatticeDetector(encoder, window=args.window, stride=args.window // 2, sync=args.sync)
-    renderer = MeshRenderer()
     generator = torch.Generator().manual_seed(args.seed)
     accuracies, rows = [], []
     items = sphere_items(args.meshes) if args.sphere else seed_protocol_items(args.data, args.meshes, args.seed, args.stride)
@@ -348,16 +364,7 @@ def main() -> None:
         message = torch.randint(0, 2, (1, args.bits), generator=generator).float()
         texture = item["texture"][None]
         marked = encoder(texture, message)
-        cameras, lights = sample_seed_cameras(1, generator), sample_seed_lights(1, generator)
-        pictures = []
-        for tex in (texture, marked):
-            batch = MeshBatch.from_tensors(item["positions"][None], item["normals"][None], item["uvs"][None],
-                                           item["faces"], tex)
-            with torch.no_grad():
-                pictures.append(renderer(batch, cameras, lights, args.height, args.width).rgba[0])
-        original, picture = (torch.round(p[..., :3].clamp(0, 1) * 255) / 255 for p in pictures)
-        coverage = pictures[0][..., 3] > 0.5
-        seen = visibility(original.permute(2, 0, 1)[None], picture.permute(2, 0, 1)[None], coverage[None])
+        original, picture, seen = render_pair(item, texture, marked, generator, args.height, args.width)
         started = time.perf_counter()
         image = picture.numpy().astype(np.float64)
         mask, _ = object_mask(image)

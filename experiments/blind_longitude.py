@@ -23,13 +23,11 @@ import time
 import numpy as np
 import torch
 import torch.nn.functional as F
-from blind_lattice import _hadamard, seed_protocol_items, sphere_items, whiten
+from blind_lattice import _hadamard, render_pair, seed_protocol_items, sphere_items, whiten
 from torch import nn
 
 from meshseal.framing import object_mask
-from meshseal.metrics import visibility
 from meshseal.models.spread import COLOURS, activity_mask
-from meshseal.render import MeshBatch, MeshRenderer, sample_seed_cameras, sample_seed_lights
 
 OVERSAMPLE = 4  # detection bins per u-cell, for the shift search
 
@@ -108,8 +106,8 @@ def main() -> None:
     args = parser.parse_args()
 
     encoder = LongitudeEncoder(args.bits, args.cells, args.psnr)
-    renderer = MeshRenderer()
     generator = torch.Generator().manual_seed(args.seed)
+    elevations = np.radians(np.linspace(34.0, 63.0, args.elevations))
     rows = []
     items = sphere_items(args.meshes) if args.sphere else seed_protocol_items(args.data, args.meshes, args.seed, args.stride)
     for item in items:
@@ -117,20 +115,10 @@ def main() -> None:
         texture = item["texture"][None]
         with torch.no_grad():
             marked = encoder(texture, message)
-        cameras, lights = sample_seed_cameras(1, generator), sample_seed_lights(1, generator)
-        pictures = []
-        for tex in (texture, marked):
-            batch = MeshBatch.from_tensors(item["positions"][None], item["normals"][None], item["uvs"][None],
-                                           item["faces"], tex)
-            with torch.no_grad():
-                pictures.append(renderer(batch, cameras, lights, args.height, args.width).rgba[0])
-        original, picture = (torch.round(p[..., :3].clamp(0, 1) * 255) / 255 for p in pictures)
-        coverage = pictures[0][..., 3] > 0.5
-        seen = visibility(original.permute(2, 0, 1)[None], picture.permute(2, 0, 1)[None], coverage[None])
+        original, picture, seen = render_pair(item, texture, marked, generator, args.height, args.width)
         started = time.perf_counter()
         image = picture.numpy().astype(np.float64)
         mask, _ = object_mask(image)
-        elevations = np.radians(np.linspace(34.0, 63.0, args.elevations))
         soft = read(encoder, image, mask, args.shifts, elevations)
         clean = read(encoder, original.numpy().astype(np.float64), mask, args.shifts, elevations)
         accuracy = float(((soft > 0) == message[0].bool().numpy()).mean())
