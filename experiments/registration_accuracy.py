@@ -23,7 +23,7 @@ from meshseal import payload
 from meshseal.framing import object_mask
 from meshseal.mesh import normalize, to_z_up
 from meshseal.pipeline import read_bits, sample_views
-from meshseal.register import pose_error, refine_on_texture_widely, register
+from meshseal.register import pose_error, refine_on_texture_twice, register
 from meshseal.render import MeshBatch, MeshRenderer
 
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures"
@@ -61,7 +61,7 @@ def main() -> None:
             found = register(original, picture, torch.from_numpy(mask), torch.tensor(background, dtype=torch.float32),
                              texture_refine=False)
             silhouette_error = pose_error(original, cameras[[view]], found.camera, args.size, args.size)
-            found.camera = refine_on_texture_widely(original, found.camera, picture[None], torch.from_numpy(mask)[None].float())
+            found.camera = refine_on_texture_twice(original, found.camera, picture[None], torch.from_numpy(mask)[None].float())
             seconds = time.perf_counter() - start
             registered = read_bits(wm.model, original, picture[None], found.camera, seed)[0]
             error = pose_error(original, cameras[[view]], found.camera, args.size, args.size)

@@ -8,6 +8,7 @@ import math
 from dataclasses import dataclass, replace
 
 import torch
+import torch.nn.functional as F
 
 from .data.dataset import vertex_mask
 from .distortions import Distortions2D, Distortions3D
@@ -101,10 +102,12 @@ def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch
                    specular=mesh.specular.repeat(n_images, 1), shininess=mesh.shininess.repeat(n_images))
 
 
-def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> RelitResidual:
+def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all") -> RelitResidual:
     """Rasterize the original `mesh` from `cameras` over the picture (B, 3, H, W), fit a point light
     that explains the picture from the original texture (`relight_fragments`) and render the original
-    under it. Silhouette pixels (partly background) are left out."""
+    under it. Silhouette pixels (partly background) are left out. `light_from` "flat" fits the light on
+    the half of the object's pixels where the albedo is flattest (`flattest_half`): a camera a pixel or
+    two off then barely changes what the fit sees (registration refines such cameras)."""
     from .render.renderer import per_fragment
 
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
@@ -114,7 +117,8 @@ def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> Re
         fragments = flat.fragments
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         albedo = pixels_at(flat.image, fragments)
-        _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo)
+        fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
+        _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo, fit_on)
         relit = _with_ambient_per_image(mesh, ambient)
         relit_render = MeshRenderer()(relit, cameras, lights, height, width, fragments=fragments)
         inside = pixels_at(relit_render.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
@@ -123,6 +127,19 @@ def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> Re
         return RelitResidual(pick(pixels_at(image, fragments)).to(image), pick(pixels_at(relit_render.image, fragments)).to(image),
                              pick(albedo).to(image), pick(uv).to(image), pick(per_fragment(mesh.face_material, fragments)),
                              pick(fragments.batch), keep, fragments, relit, lights)
+
+
+def flattest_half(albedo: torch.Tensor, fragments, reach: int = 2) -> torch.Tensor:
+    """Which covered pixels of `fragments` (P,) lie where the albedo render (B, 3, H, W) varies least
+    within `reach` pixels: the flatter half of each image's pixels."""
+    gradient_y, gradient_x = torch.gradient(albedo, dim=(2, 3))
+    activity = (gradient_x.abs() + gradient_y.abs()).amax(1, keepdim=True)
+    activity = pixels_at(F.max_pool2d(activity, 2 * reach + 1, 1, reach), fragments)[:, 0]
+    flat = torch.zeros_like(activity, dtype=torch.bool)
+    for index in torch.unique(fragments.batch).tolist():
+        chosen = fragments.batch == index
+        flat[chosen] = activity[chosen] <= activity[chosen].median()
+    return flat
 
 
 def uv_maps(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, grid: int, reference: torch.Tensor | None = None,

@@ -27,10 +27,9 @@ COMPARE_SIZE = 64  # framed size at which candidates are scored
 LOWPASS = 4.0  # the texture stage compares band-passed pictures: shading (a light misfit) is left out
 WORKING_SIZE = 512  # longest side at which the whole picture is refined on the texture
 TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur is this many pixels
-WIDE_SIGMAS = (8.0, 4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
+TEXTURE_SIGMAS = (4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
 ROBUST_SCALE = 2.0  # the texture stage's Cauchy scale, in median absolute residuals
 ROBUST_MIN_SIGMA = 2.0  # ... on levels blurred this much or more (finer ones: least squares)
-WIDE_LEVEL_STILL = 0.1  # pixels: a coarsest level that moves the pose less leaves the rest as without it
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
 COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement at COMPARE_SIZE (blur, pixels)
 FINE_SILHOUETTE_SIGMAS = (1.0, 0.5)  # the picked candidate's silhouette refinement at SEARCH_SIZE
@@ -316,14 +315,15 @@ def pose_error(mesh: MeshBatch, truth: Cameras, found: Cameras, height: int, wid
 
 
 def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
-                      sigmas: tuple[float, ...] = WIDE_SIGMAS[1:], iterations: int = 10, step: float = 0.25,
-                      margin: int = 3) -> Cameras:
+                      sigmas: tuple[float, ...] = TEXTURE_SIGMAS, iterations: int = 10, step: float = 0.25,
+                      margin: int = 3, light_from: str = "all") -> Cameras:
     """Sub-pixel refinement of `camera` (one camera of `picture` (1, 3, H, W), object pixels `mask`
     (1, H, W)) on the texture rather than the silhouette: Gauss-Newton on the rigid move of `_moved`
     (pixel units) minimising the squared difference between the picture and the original relit to
     match it, over interior pixels at least `margin` pixels from any silhouette (so that moves of a
     pixel or two never bring background in). Both are band-passed around each of `sigmas` in turn
-    (coarse to fine: wider basins first); the light is refitted before each level, and a level blurred
+    (coarse to fine: wider basins first); the light is refitted before each level (on the pixels
+    `light_from` says, see `pipeline.relit_residual`), and a level blurred
     by sigma > TEXTURE_SCALE_SIGMA pixels runs on a copy shrunk so that its blur is that many pixels
     (4x fewer pixels to render at sigma 4, as accurate). The Jacobian is the band-passed picture's
     gradient times the analytic screen flow of each pose coordinate (`_flow_jacobian`, one render per
@@ -340,11 +340,13 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
             size = (max(8, round(picture.shape[-2] * scale)), max(8, round(picture.shape[-1] * scale)))
             level_picture = F.interpolate(picture, size=size, mode="area")
             level_mask = F.interpolate(mask[:, None], size=size, mode="area")[:, 0]
-        camera = _texture_level(mesh, camera, level_picture, level_mask, sigma * scale, iterations, step, margin)
+        camera = _texture_level(mesh, camera, level_picture, level_mask, sigma * scale, iterations, step, margin,
+                                light_from)
     return camera
 
 
-def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, margin: int):
+def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, margin: int,
+                light_from: str = "all"):
     """The original relit to match `picture` (1, 3, H, W) from `camera` (`pipeline.relit_residual`),
     its hard render there (1, 3, H, W) and the interior pixels (1, H, W): on the object in both and at
     least `margin` pixels from any silhouette, so that moves of a pixel or two never bring background
@@ -352,7 +354,7 @@ def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: t
     from .pipeline import relit_residual
 
     height, width = picture.shape[-2:]
-    fit = relit_residual(mesh, picture, camera)
+    fit = relit_residual(mesh, picture, camera, light_from)
     rendered = MeshRenderer(blend="hard")(fit.relit, camera, fit.lights, height, width).rgba
     outside = ((rendered[..., 3] < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
     inside = F.max_pool2d(outside, 2 * margin + 1, 1, margin)[:, 0] < 0.5
@@ -386,12 +388,12 @@ def _band_pass(inside: torch.Tensor, sigma: float):
 
 
 def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
-                  margin: int):
+                  margin: int, light_from: str = "all"):
     """What the texture stage compares, from `camera`'s view of `picture` (1, 3, H, W): a function
     rendering the relit original from any camera and returning the band-passed difference to the
     picture over the interior pixels of `_relit_view`, the band-passed picture there, the interior and
     the relit mesh. None when `_relit_view` is."""
-    view = _relit_view(mesh, camera, picture, mask, margin)
+    view = _relit_view(mesh, camera, picture, mask, margin, light_from)
     if view is None:
         return None
     fit, _, inside = view
@@ -434,28 +436,25 @@ def texture_misfit(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         return total
 
 
-def refine_on_texture_widely(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
-    """`refine_on_texture` from `camera` with and without an extra coarse level (blur 8 px), keeping
-    the result whose texture fits the picture better: the wide start pulls in poses 1.5-2 px off that
-    the narrow one leaves, but its coarse bands carry some shading, which can nudge an already good
-    pose off by a few tenths of a pixel (measured on the fixtures). When the coarse level moves the
-    pose by less than WIDE_LEVEL_STILL pixels, both runs would go on from the same place: only the
-    narrow one runs."""
+def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
+    """`refine_on_texture` from `camera` twice, with the light fitted on all the object's pixels and on
+    its flattest half, keeping whichever of the two results (or `camera` itself) the texture fits best.
+    A light fitted at a pose a pixel or two off can be far wrong (a far, strong light for a near one),
+    and with it the cost is lower off the true pose than at it; on the flat half the fit barely sees
+    the pose error, but it has fewer and less varied pixels, and it loses on some meshes that the
+    all-pixel fit reads. Keeping the start guards against runs that drift off a good pose."""
     picture, mask = _working_size(picture, mask)
-    wide_start = refine_on_texture(mesh, camera, picture, mask, WIDE_SIGMAS[:1])
-    narrow = refine_on_texture(mesh, camera, picture, mask, WIDE_SIGMAS[1:])
-    if pose_error(mesh, camera, wide_start, *picture.shape[-2:]) < WIDE_LEVEL_STILL:
-        return narrow
-    wide = refine_on_texture(mesh, wide_start, picture, mask, WIDE_SIGMAS[1:])
-    return min((narrow, wide), key=lambda c: texture_misfit(mesh, c, picture, mask))
+    results = [camera] + [refine_on_texture(mesh, camera, picture, mask, light_from=light_from)
+                          for light_from in ("all", "flat")]
+    return min(results, key=lambda c: texture_misfit(mesh, c, picture, mask))
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
-                   iterations: int, step: float, margin: int) -> Cameras:
+                   iterations: int, step: float, margin: int, light_from: str) -> Cameras:
     """One level of `refine_on_texture`, at the picture's (1, 3, H, W) own size."""
     height = picture.shape[-2]
     with torch.no_grad():
-        problem = _band_problem(mesh, camera, picture, mask, sigma, margin)
+        problem = _band_problem(mesh, camera, picture, mask, sigma, margin, light_from)
         if problem is None:
             return camera
         render_residual, _, inside, relit = problem
@@ -572,5 +571,5 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     # 3. The same camera for the whole picture, refined there on the texture.
     camera = replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
     if texture_refine:
-        camera = refine_on_texture_widely(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
+        camera = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
     return Registration(camera, box[0], silhouette_iou(mesh, camera, mask))

@@ -67,12 +67,14 @@ def _best_light(y, u, position, normal, candidates):
     return float(residual[best]), a[:, best], candidates[best], d[:, best]
 
 
-def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: torch.Tensor | None = None):
+def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: torch.Tensor | None = None,
+                      fit_on: torch.Tensor | None = None):
     """Fit a point light to the observed colours `seen` (P, 3) at `fragments` of `batch` (a MeshBatch
     with uvs) seen from `cameras`; returns the colours our shader predicts there (P, 3), differentiable
     w.r.t. the camera through the texture lookup (the light is held fixed), and the fit itself
     (ambient factors (B, 3), PointLights). `albedo` (P, 3) replaces the texture looked up at the pixel
-    centres (e.g. an antialiased unlit render, to match an antialiased picture)."""
+    centres (e.g. an antialiased unlit render, to match an antialiased picture); `fit_on` (P,) bool
+    limits the fit to some pixels (the prediction covers all)."""
     from .shader import PhongShader
     from .unrender import surface_attributes, surface_points
 
@@ -81,7 +83,9 @@ def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: tor
         _, albedo = surface_attributes(batch, fragments)
     with torch.no_grad():
         position, normal = surface_points(batch, fragments, cameras)
-    ambient, lights = fit_point_light(seen, albedo, position, normal, fragments.batch, n_images)
+    used = slice(None) if fit_on is None else fit_on
+    ambient, lights = fit_point_light(seen[used], albedo[used], position[used], normal[used], fragments.batch[used],
+                                      n_images)
     pick = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
     eye = cameras.eye.to(position).detach()
     predicted = PhongShader()(position, normal, albedo, pick(eye), pick(lights.position), pick(lights.intensity),
