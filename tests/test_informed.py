@@ -15,7 +15,7 @@ from meshseal.errors import MeshsealError
 from meshseal.framing import boxes_from_mask, crop_boxes, object_mask
 from meshseal.mesh import load, normalize, to_z_up
 from meshseal.mesh.io import camera_from_dict, camera_to_dict
-from meshseal.pipeline import uv_maps
+from meshseal.pipeline import flattest_half, uv_maps
 from meshseal.register import crop_intrinsics, pose_error, refine_on_texture, register
 from meshseal.render import (MeshBatch, MeshRenderer, pixels_at, relight_fragments, sample_any_lights,
                              sample_any_view_cameras, surface_at_pixels, unrender)
@@ -58,6 +58,26 @@ def test_point_light_fit_explains_our_renders():
     # The colours do vary a lot, so a small misfit is the fit's doing.
     flat = (seen - seen.mean(0)).pow(2).mean().sqrt()
     assert float(flat) > 0.05
+
+
+def test_light_fitted_on_some_pixels_explains_all_of_them():
+    """The flattest half of the albedo (`flattest_half`) is half the covered pixels, all on the flat
+    side of an albedo plain on the left and striped (one-pixel stripes) on the right, and the rest on
+    the striped side or within reach of it; a light fitted on those pixels alone still explains the
+    whole render."""
+    mesh, (camera, lights) = _bunny(), _view()
+    out = MeshRenderer(blend="hard")(mesh, camera, lights, 128, 128)
+    fragments = out.fragments
+    albedo = torch.full((1, 3, 128, 128), 0.6)
+    albedo[..., 64:][..., ::2] = 0.2  # the right half striped
+    flat = flattest_half(albedo, fragments)
+    columns = fragments.pixel % 128
+    flat_side = columns < 61  # the step into the stripes (at column 63) reaches 2 px further
+    assert bool(flat_side.any() and (~flat_side).sum() > flat_side.sum())  # more busy pixels than flat ones
+    assert abs(int(flat.sum()) - len(flat) / 2) <= 1 and bool(flat[flat_side].all())
+    seen = pixels_at(out.image, fragments)
+    predicted, _, _ = relight_fragments(mesh, fragments, camera, seen, fit_on=flat)
+    assert float((seen - predicted).pow(2).mean().sqrt()) < 0.01
 
 
 def test_unrender_averages_pixels_per_uv_cell():
