@@ -33,7 +33,7 @@ from meshseal.mesh import normalize, to_z_up
 from meshseal.metrics import visibility
 from meshseal.pipeline import sample_views
 from meshseal.register import pose_error
-from meshseal.render import MeshBatch, make_renderer
+from meshseal.render import make_renderer
 
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures"
 TEXTURED = {"bunny": "bunny.glb", "teapot": "teapot/teapot.obj", "crate": "sh3d_crate/crate.obj",

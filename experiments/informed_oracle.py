@@ -25,7 +25,6 @@ import math
 import time
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from meshseal.data.dataset import MeshDataset, collate

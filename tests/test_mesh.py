@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
 
 from meshseal.errors import MeshError
 from meshseal.mesh import (Material, Mesh, load, normalize, save, simplify, spherical_uv, to_z_up,

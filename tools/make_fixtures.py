@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import base64
 import glob
-import io
 import json
 import os
 import shutil

@@ -90,7 +90,7 @@ def main() -> int:
     steps = int(metadata.get("steps") or 0)
     built = (f"(seed {metadata.get('seed')}, {steps} steps, {float(metadata.get('training_seconds', 0)) / 60:.1f} min on "
              "this repository's 2-core CPU machine)" if steps else
-             f"(nothing is learned: the pattern is drawn from the config's seeds in well under a second)")
+             "(nothing is learned: the pattern is drawn from the config's seeds in well under a second)")
     from meshseal.payload import SCHEMAS, payload_bits
 
     payload = (f"{payload_bits(config['n_bits'])} payload bits after error correction and header (docs/payload.md)"

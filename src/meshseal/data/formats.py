@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import re
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -303,7 +303,7 @@ def check_stl(path: Path, data: bytes) -> None:
     if not ascii_like:
         promised = struct.unpack_from("<I", data, 80)[0] if len(data) >= 84 else None
         detail = (f"its header promises {promised} triangles ({84 + 50 * promised} bytes), the file has "
-                  f"{len(data)} bytes" if promised is not None else f"shorter than the 84-byte header")
+                  f"{len(data)} bytes" if promised is not None else "shorter than the 84-byte header")
         raise MeshError(f"{path}: not a valid binary STL: {detail}")
     state, corners = "endsolid", 0
     for number, line in enumerate(data.decode("utf-8", "replace").splitlines(), 1):

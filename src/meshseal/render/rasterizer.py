@@ -126,7 +126,6 @@ def visible_faces(clip: torch.Tensor, faces: torch.Tensor, height: int, width: i
 
 def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int) -> Fragments:
     """Rasterize clip-space vertices (B, V, 4) with faces (F, 3) shared or (B, F, 3) per element."""
-    n_batch = clip.shape[0]
     pix_to_face = visible_faces(clip, faces, height, width)
     flat = pix_to_face.reshape(-1)
     pixel = torch.nonzero(flat >= 0).squeeze(1)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from .lighting import K_AMBIENT, K_DIFFUSE, K_SPECULAR, PointLights, attenuation
+from .lighting import K_AMBIENT, K_DIFFUSE, K_SPECULAR, attenuation
 
 
 @dataclass
