@@ -35,6 +35,24 @@ def _degrees(cameras, truth) -> torch.Tensor:
     return torch.rad2deg(torch.acos((views @ true_view.T).clamp(-1, 1)))[:, 0]
 
 
+def seeded_picture(model, dataset: MeshDataset, index: int):
+    """Test mesh `index` marked by `model`, seen from one seeded 256^2 view (8-bit values, plain random
+    background): the original mesh, the true camera, the picture (1, 3, 256, 256), and the object
+    mask (H, W) and background colour found from it as `meshseal detect` finds them."""
+    generator = torch.Generator().manual_seed(1000 + index)
+    batch = collate([dataset[index]], "cpu")
+    positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
+    message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float()
+    with torch.no_grad():
+        marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None))
+        cameras, lights = sample_views(1, "seed", generator)
+        picture = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights,
+                                 256, 256, random_backgrounds(1, generator)).image.clamp(0, 1)
+        picture = torch.round(picture * 255) / 255
+    mask, background = object_mask(picture[0].permute(1, 2, 0).numpy())
+    return MeshBatch.from_tensors(positions, normals, uvs, faces, texture), cameras, picture, mask, background
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", required=True)
@@ -54,19 +72,7 @@ def main() -> None:
 
     registration._refine_silhouettes = keep_candidates
     for index in range(args.start, min(len(dataset), args.start + args.meshes)):
-        generator = torch.Generator().manual_seed(1000 + index)
-        batch = collate([dataset[index]], "cpu")
-        positions, normals, uvs, faces, texture = (batch[k] for k in
-                                                   ("positions", "normals", "uvs", "faces", "texture"))
-        message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float()
-        with torch.no_grad():
-            marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None))
-            cameras, lights = sample_views(1, "seed", generator)
-            picture = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights,
-                                     256, 256, random_backgrounds(1, generator)).image.clamp(0, 1)
-            picture = torch.round(picture * 255) / 255
-        original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
-        mask, background = object_mask(picture[0].permute(1, 2, 0).numpy())
+        original, cameras, picture, mask, background = seeded_picture(model, dataset, index)
         started = time.perf_counter()
         found = registration.register(original, picture[0], torch.from_numpy(mask),
                                       torch.tensor(background, dtype=torch.float32))

@@ -17,14 +17,12 @@ import json
 import time
 
 import torch
+from registration_candidates import seeded_picture
 
 import meshseal
-from meshseal import payload
 from meshseal import register as registration
-from meshseal.data.dataset import MeshDataset, collate
-from meshseal.framing import object_mask
-from meshseal.pipeline import jitter_cameras, random_backgrounds, sample_views
-from meshseal.render import MeshBatch, MeshRenderer
+from meshseal.data.dataset import MeshDataset
+from meshseal.pipeline import jitter_cameras
 
 
 def main() -> None:
@@ -38,19 +36,7 @@ def main() -> None:
     dataset = MeshDataset(args.data, "test")
     rows = []
     for index in range(args.start, min(len(dataset), args.start + args.meshes)):
-        generator = torch.Generator().manual_seed(1000 + index)
-        batch = collate([dataset[index]], "cpu")
-        positions, normals, uvs, faces, texture = (batch[k] for k in
-                                                   ("positions", "normals", "uvs", "faces", "texture"))
-        message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float()
-        with torch.no_grad():
-            marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None))
-            cameras, lights = sample_views(1, "seed", generator)
-            picture = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights,
-                                     256, 256, random_backgrounds(1, generator)).image.clamp(0, 1)
-            picture = torch.round(picture * 255) / 255
-        original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
-        mask, _ = object_mask(picture[0].permute(1, 2, 0).numpy())
+        original, cameras, picture, mask, _ = seeded_picture(model, dataset, index)
         mask = torch.from_numpy(mask)[None].float()
         start = jitter_cameras(cameras, args.jitter, 256, torch.Generator().manual_seed(index))
         error = lambda camera: round(registration.pose_error(original, cameras, camera, 256, 256), 3)  # noqa: E731
