@@ -177,16 +177,19 @@ def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, camer
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
     original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them)."""
-    from .models.spread import cell_sums
+    from .models.spread import cell_sums, whiten
     from .render import sample_textures
 
+    encoder = model.texture_encoder
     found = relit_residual(mesh, image, cameras)
     with torch.no_grad():
-        fields = [None if t is None else model.texture_encoder.amplitude(t[None])[0] for t in mesh.textures]
-        amplitude = sample_textures(fields, found.uv, found.material)
+        masks = [None if t is None else encoder.amplitude(t[None])[0] for t in mesh.textures]
+        amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
-        return cell_sums(model.texture_encoder, found.seen - found.expected, found.uv, amplitude, gain,
-                         found.image_index, len(cameras))
+        along = ((found.seen - found.expected) * encoder.colour.to(image)).sum(1)
+        whitened = whiten(along, found.fragments.pixel.index_select(0, found.keep),
+                          (len(cameras), image.shape[-2], image.shape[-1]))
+        return cell_sums(encoder, whitened * amplitude * gain, found.uv, found.image_index, len(cameras))
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,

@@ -14,8 +14,9 @@ cell centres:
 
 Detection has the original mesh and the picture's camera. The original is relit to match the picture
 (`pipeline.relit_residual`), the residual at every covered pixel is projected onto the mark's
-expected colour and amplitude there (recomputed from the original texture), and accumulated into the
-cells by the same bilinear weights. Per bit, z = sum(sign x cell) / sqrt(sum(cell^2)): with no mark
+colour, whitened in the picture (`whiten`: slow relighting misfit removed, texture edges damped),
+weighted by the mark's expected amplitude there (recomputed from the original texture), and
+accumulated into the cells by the same bilinear weights. Per bit, z = sum(sign x cell) / sqrt(sum(cell^2)): with no mark
 the cell signs are independent of the picture, so z is a normalised Rademacher sum, about N(0, 1)
 whatever the picture shows; with a mark it grows with the square root of the cells seen.
 """
@@ -96,18 +97,44 @@ class SpreadSpectrumEncoder(nn.Module):
         return (texture + residual).clamp(0.0, 1.0)
 
 
-def cell_sums(encoder: SpreadSpectrumEncoder, residual: torch.Tensor, uv: torch.Tensor, amplitude: torch.Tensor,
-              gain: torch.Tensor, image_index: torch.Tensor, n_images: int) -> torch.Tensor:
-    """The matched filter's evidence per cell (n_images, C*C): the residual projected on the mark's
-    expected colour and amplitude, accumulated into the cells by the embedding's bilinear weights.
-    Cell sums of several pictures of one asset add up (pooling).
+def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], highpass: float = 1.5,
+           window: float = 2.0, floor: float = 0.05) -> torch.Tensor:
+    """The residual along the mark's colour at covered pixels (P,) -> whitened for the matched filter.
 
-    residual (P, 3): picture minus the relit original at covered pixels; uv (P, 2) their texture
-    coordinates; amplitude (P, 3) the mark's unsigned field there; gain (P,) the shading that scales
-    an albedo change into the picture; image_index (P,) which picture each pixel belongs to.
+    Two kinds of host residual are not white: slow chroma misfit of the relighting (subtracted: the
+    local mean over the object's pixels, Gaussian sigma `highpass` px) and texture edges that a camera
+    a fraction of a pixel off leaves behind (damped: divided by the local variance, sigma `window` px,
+    floored at `floor` x the picture's median). Both depend on the picture only, never on the key's signs, so z
+    stays N(0, 1) without a mark. pixel (P,): flat indices into the (B, H, W) `shape` of the pictures.
+    """
+    from ..distortions import gaussian_blur
+
+    def local_mean(values: torch.Tensor, sigma: float) -> torch.Tensor:
+        planes = projected.new_zeros(2, shape[0] * shape[1] * shape[2])
+        planes[0, pixel], planes[1, pixel] = values, 1.0
+        blurred = gaussian_blur(planes.reshape(2, shape[0], shape[1], shape[2]).transpose(0, 1), sigma)
+        blurred = blurred.transpose(0, 1).reshape(2, -1)[:, pixel]
+        return blurred[0] / blurred[1].clamp_min(1e-6)
+
+    detail = projected - local_mean(projected, highpass)
+    variance = local_mean(detail * detail, window)
+    image = pixel // (shape[1] * shape[2])
+    least = torch.zeros_like(variance)
+    for index in torch.unique(image).tolist():  # each picture's own median
+        chosen = image == index
+        least[chosen] = floor * variance[chosen].median().clamp_min(1e-12)
+    return detail / torch.maximum(variance, least)
+
+
+def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch.Tensor, image_index: torch.Tensor,
+              n_images: int) -> torch.Tensor:
+    """The matched filter's evidence per cell (n_images, C*C): the residual at covered pixels,
+    projected on the mark's colour, whitened and weighted by the mark's expected amplitude (P,),
+    accumulated into the cells by the embedding's bilinear weights. Cell sums of several pictures of
+    one asset add up (pooling). uv (P, 2): the pixels' texture coordinates; image_index (P,): which
+    picture each pixel belongs to.
     """
     cells = encoder.chips
-    projected = (residual * amplitude).sum(1) * gain
     wrapped = uv - torch.floor(uv)
     x, y = wrapped[:, 0] * cells - 0.5, (1.0 - wrapped[:, 1]) * cells - 0.5
     x0, y0 = torch.floor(x), torch.floor(y)
