@@ -174,9 +174,11 @@ def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, camer
     return soft_bits(model.texture_encoder, spread_evidence(model, mesh, image, cameras), key_seed)
 
 
-def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
+                    whitening: dict | None = None) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
-    original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them)."""
+    original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
+    `whitening`: options of `models.spread.whiten` other than its defaults (experiments)."""
     from .models.spread import cell_sums, whiten
     from .render import sample_textures
 
@@ -188,7 +190,7 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
         along = ((found.seen - found.expected) * encoder.colour.to(image)).sum(1)
         whitened = whiten(along, found.fragments.pixel.index_select(0, found.keep),
-                          (len(cameras), image.shape[-2], image.shape[-1]))
+                          (len(cameras), image.shape[-2], image.shape[-1]), **(whitening or {}))
         return cell_sums(encoder, whitened * amplitude * gain, found.uv, found.image_index, len(cameras))
 
 

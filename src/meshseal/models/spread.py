@@ -97,8 +97,8 @@ class SpreadSpectrumEncoder(nn.Module):
         return (texture + residual).clamp(0.0, 1.0)
 
 
-def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], highpass: float = 1.5,
-           window: float = 2.0, floor: float = 0.05) -> torch.Tensor:
+def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], highpass: float | None = 1.5,
+           window: float | None = 2.0, floor: float = 0.05) -> torch.Tensor:
     """The residual along the mark's colour at covered pixels (P,) -> whitened for the matched filter.
 
     Two kinds of host residual are not white: slow chroma misfit of the relighting (subtracted: the
@@ -106,6 +106,7 @@ def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
     a fraction of a pixel off leaves behind (damped: divided by the local variance, sigma `window` px,
     floored at `floor` x the picture's median). Both depend on the picture only, never on the key's signs, so z
     stays N(0, 1) without a mark. pixel (P,): flat indices into the (B, H, W) `shape` of the pictures.
+    `highpass` or `window` None skips that step (experiments/whitening.py measures each).
     """
     from ..distortions import gaussian_blur
 
@@ -116,7 +117,9 @@ def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
         blurred = blurred.transpose(0, 1).reshape(2, -1)[:, pixel]
         return blurred[0] / blurred[1].clamp_min(1e-6)
 
-    detail = projected - local_mean(projected, highpass)
+    detail = projected if highpass is None else projected - local_mean(projected, highpass)
+    if window is None:
+        return detail
     variance = local_mean(detail * detail, window)
     image = pixel // (shape[1] * shape[2])
     least = torch.zeros_like(variance)
