@@ -70,7 +70,8 @@ def main() -> int:
                         f"each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
                         f"shaped by local texture activity (window {config['activity_window']}, floor "
                         f"{config['activity_floor']}) and scaled to texture PSNR {config['texture_psnr']} dB at strength 1; "
-                        "read by a matched filter after un-rendering the picture onto the original mesh relit to match it "
+                        "read by a matched filter (the residual whitened in the picture) after un-rendering the picture onto the "
+                        "original mesh relit to match it "
                         "(detection needs the original mesh and the picture's camera: from the PNG's metadata, or "
                         "registered). Its soft bits are z-scores, N(0, 1) without a mark, hence p-values")
     elif config["decoder"] == "uv":
