@@ -35,7 +35,7 @@ COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement a
 FINE_SILHOUETTE_SIGMAS = (1.0, 0.5)  # the picked candidate's silhouette refinement at SEARCH_SIZE
 PICK_MARGIN = 0.7  # another candidate replaces the best-scored one only if its texture misfit is this much lower
 PICK_IOU_SLACK = 0.1  # ... and only if its refined silhouette's IoU is at most this much below the best one's
-SHADED_CANDIDATES = 50  # the candidate views with the best silhouette overlap that are also scored on shading
+SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
 DISTANCE = 3.5
 FOV = 60.0
 
