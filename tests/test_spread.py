@@ -113,3 +113,34 @@ def test_whitening_removes_slow_misfit_and_trusts_quiet_areas_more():
     noise = torch.randn(len(pixel), generator=generator) * torch.where(x < 32, 0.01, 0.1)
     score = lambda values: float((values * mark).sum() / values.norm())  # noqa: E731 (matched filter, normalised)
     assert score(whiten(mark + noise, pixel, (1, size, size))) > 2.0 * score(mark + noise)
+
+
+def test_footprint_matches_how_the_picture_sampled_the_texture():
+    """A picture whose pixels average the surface over their area (Blender, game engines, a resize)
+    is read with a prediction and template sampled the same way: its soft bits grow clearly, and the
+    footprint found is the one that made it. A point-sampled picture (ours) is read as before."""
+    import torch.nn.functional as F
+
+    from meshseal.distortions import gaussian_blur
+    from meshseal.pipeline import picture_footprint, relit_residual, spread_evidence
+    from meshseal.models.spread import soft_bits
+
+    model, mesh, message, _, marked_texture = _marked_and_original()
+    original = MeshBatch.from_mesh(mesh)
+    marked = MeshBatch.from_mesh(mesh)
+    marked.textures = [marked_texture[0]]
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
+    quantise = lambda x: torch.round(x.clamp(0, 1) * 255) / 255  # noqa: E731
+    signs = 2 * message - 1
+    with torch.no_grad():
+        point = quantise(MeshRenderer()(marked, cameras, lights, 128, 128).image)
+        fine = MeshRenderer()(marked, cameras, lights, 512, 512).image
+        area = quantise(F.avg_pool2d(gaussian_blur(fine, 2.0), 4))  # pixel area, then a 0.5 px blur
+        for picture, sigma in ((point, None), (area, 0.5)):
+            found = picture_footprint(original, relit_residual(original, picture, cameras), cameras, 128, 128)
+            assert (sigma is None and bool(found.sigma.isnan().all())) or float(found.sigma[0]) == sigma
+        assert torch.equal(spread_evidence(model, original, point, cameras),
+                           spread_evidence(model, original, point, cameras, footprint=False))
+        matched, centre = (soft_bits(model.texture_encoder, spread_evidence(model, original, area, cameras, footprint=f))
+                           for f in (True, False))
+    assert float((matched * signs).mean()) > 1.3 * float((centre * signs).mean())

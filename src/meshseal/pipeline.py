@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from .data.dataset import vertex_mask
-from .distortions import Distortions2D, Distortions3D
+from .distortions import Distortions2D, Distortions3D, gaussian_blur
 from .framing import boxes_from_mask, crop_boxes
 from .models import WatermarkModel
 from .render import (Cameras, MeshBatch, MeshRenderer, interpolate, lights_at, pixels_at, relight_fragments,
@@ -174,24 +174,117 @@ def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, camer
     return soft_bits(model.texture_encoder, spread_evidence(model, mesh, image, cameras), key_seed)
 
 
+FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
+
+
+@dataclass
+class Footprint:
+    """How a picture sampled the surface, as far as the original's texture shows: per picture, point
+    samples at pixel centres (our renderer, OpenGL without multisampling) or the average over each
+    pixel's area blurred by a Gaussian of `sigma` pixels (antialiasing and pixel filters of Blender and
+    game engines, mipmaps, resizing, blur). `expected` (P, 3): the relit original under each picture's
+    footprint at the kept pixels; `usable` (P,): the kept pixels that footprint covers wholly; `sigma`
+    (B,): NaN for point samples. The supersampled render (`scale` x the picture's size) gives the
+    sub-pixel `fragments`, `uv` and `material` that the matched filter's template is built from."""
+
+    expected: torch.Tensor
+    usable: torch.Tensor
+    sigma: torch.Tensor
+    scale: int
+    fragments: object
+    uv: torch.Tensor
+    material: torch.Tensor
+
+
+def supersampling(height: int, width: int) -> int:
+    """Sub-pixel samples per picture pixel along each axis for `picture_footprint`: 4 up to 256^2,
+    fewer for larger pictures (whose pixels cover less texture) to bound the render to about 1024^2."""
+    return max(1, min(4, 1024 // max(height, width)))
+
+
+def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,
+                      sigmas: tuple[float, ...] = FOOTPRINT_SIGMAS) -> Footprint:
+    """Pick, per picture, the footprint (point samples, or the pixel area blurred by one of `sigmas`)
+    under which the relit original best predicts the picture's fine detail: the largest normalised
+    correlation between the picture and the prediction, both high-passed (their local mean over the
+    object's pixels, sigma 1.5 px, taken off: a relighting misfit is slow and must not decide), over
+    the pixels every candidate covers. The choice looks at the picture and the original only, never
+    at a key, so the matched filter's null distribution stays what it was."""
+    from .models.spread import local_mean
+    from .render.renderer import per_fragment
+
+    scale = supersampling(height, width)
+    n_images = len(cameras)
+    fine = MeshRenderer()(found.relit, cameras, found.lights, height * scale, width * scale)
+    pick = lambda image: pixels_at(image, found.fragments).index_select(0, found.keep)  # noqa: E731
+    area = lambda image: F.avg_pool2d(image, scale) if scale > 1 else image  # noqa: E731
+    usable = pick(area(fine.rgba[..., 3:].permute(0, 3, 1, 2)))[:, 0] > 0.999
+    widths = ((0.0,) if scale > 1 else ()) + tuple(sigmas)
+    candidates = [found.expected] + [pick(area(gaussian_blur(fine.image, s * scale))) for s in widths]
+    pixel = found.fragments.pixel.index_select(0, found.keep)[usable]
+    image = found.image_index[usable]
+    detail = lambda values: values - local_mean(values, pixel, (n_images, height, width), 1.5)  # noqa: E731
+    seen = detail(found.seen[usable])
+    scores = []
+    for candidate in candidates:
+        predicted = detail(candidate[usable])
+        agree = seen.new_zeros(n_images).index_add_(0, image, (seen * predicted).sum(1))
+        power = seen.new_zeros(n_images).index_add_(0, image, (predicted * predicted).sum(1))
+        scores.append(torch.nan_to_num(agree / power.sqrt(), nan=-float("inf")))
+    choice = torch.stack(scores).argmax(0)  # (B,); a picture with nothing to compare keeps point samples
+    sigma = torch.tensor((float("nan"),) + widths, device=choice.device)[choice]
+    per_pixel = choice.index_select(0, found.image_index)
+    expected = torch.stack(candidates).gather(0, per_pixel[None, :, None].expand(1, -1, 3))[0]
+    usable = usable | (per_pixel == 0)  # point samples keep every interior pixel, as before
+    uvs = mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs
+    return Footprint(expected, usable, sigma, scale, fine.fragments, interpolate(uvs, fine.fragments),
+                     per_fragment(mesh.face_material, fine.fragments))
+
+
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
-                    whitening: dict | None = None) -> torch.Tensor:
+                    whitening: dict | None = None, footprint: bool = True) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
     original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
-    `whitening`: options of `models.spread.whiten` other than its defaults (experiments)."""
+
+    With `footprint` (the default) each picture's sampling is estimated first (`picture_footprint`):
+    the prediction subtracted and the template the residual is matched against are both the
+    original's texture as that picture sampled it, so pictures from engines that average over the
+    pixel (and resized or blurred ones) are read with a filter matched to them. `whitening`: options of
+    `models.spread.whiten` other than its defaults (experiments)."""
     from .models.spread import cell_sums, whiten
     from .render import sample_textures
 
     encoder = model.texture_encoder
     found = relit_residual(mesh, image, cameras)
+    n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
     with torch.no_grad():
         masks = [None if t is None else encoder.amplitude(t[None])[0] for t in mesh.textures]
-        amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
-        along = ((found.seen - found.expected) * encoder.colour.to(image)).sum(1)
-        whitened = whiten(along, found.fragments.pixel.index_select(0, found.keep),
-                          (len(cameras), image.shape[-2], image.shape[-1]), **(whitening or {}))
-        return cell_sums(encoder, whitened * amplitude * gain, found.uv, found.image_index, len(cameras))
+        pixel = found.fragments.pixel.index_select(0, found.keep)
+        sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
+        expected = found.expected if sampled is None else sampled.expected
+        usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
+        along = ((found.seen - expected) * encoder.colour.to(image)).sum(1)
+        whitened = torch.zeros_like(along)
+        whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **(whitening or {}))
+        whitened = whitened * gain
+        point = torch.ones(n_images, dtype=torch.bool) if sampled is None else sampled.sigma.isnan()
+        at_point = point.to(found.image_index.device).index_select(0, found.image_index)
+        amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
+        sums = cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images)
+        if sampled is None or bool(point.all()):
+            return sums
+        # The template under an area footprint: the adjoint of (blur, then average each pixel's
+        # sub-pixel samples), i.e. the whitened residual blurred and spread over the sub-pixels.
+        canvas = whitened.new_zeros(n_images * height * width).index_copy(0, pixel, whitened * ~at_point)
+        canvas = canvas.reshape(n_images, 1, height, width)
+        for index in torch.nonzero(~point).squeeze(1).tolist():
+            canvas[index] = gaussian_blur(canvas[index: index + 1], float(sampled.sigma[index]))[0]
+        scale = sampled.scale
+        fine = F.interpolate(canvas, scale_factor=scale, mode="nearest") / scale ** 2 if scale > 1 else canvas
+        amplitude = sample_textures(masks, sampled.uv, sampled.material).norm(dim=1)
+        values = fine.reshape(-1).index_select(0, sampled.fragments.pixel) * amplitude
+        return sums + cell_sums(encoder, values, sampled.uv, sampled.fragments.batch, n_images)
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,

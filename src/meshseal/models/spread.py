@@ -97,6 +97,20 @@ class SpreadSpectrumEncoder(nn.Module):
         return (texture + residual).clamp(0.0, 1.0)
 
 
+def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float) -> torch.Tensor:
+    """Gaussian mean (sigma px) of values (P,) or (P, C) at covered pixels, over the covered pixels
+    only (the background does not bleed in). pixel (P,): flat indices into the (B, H, W) `shape`."""
+    from ..distortions import gaussian_blur
+
+    flat = values.reshape(len(pixel), -1)
+    channels = flat.shape[1]
+    planes = values.new_zeros(channels + 1, shape[0] * shape[1] * shape[2])
+    planes[:channels, pixel], planes[channels, pixel] = flat.T, 1.0
+    blurred = gaussian_blur(planes.reshape(channels + 1, shape[0], shape[1], shape[2]).transpose(0, 1), sigma)
+    blurred = blurred.transpose(0, 1).reshape(channels + 1, -1)[:, pixel]
+    return (blurred[:channels] / blurred[channels:].clamp_min(1e-6)).T.reshape(values.shape)
+
+
 def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], highpass: float | None = 1.5,
            window: float | None = 2.0, floor: float = 0.05) -> torch.Tensor:
     """The residual along the mark's colour at covered pixels (P,) -> whitened for the matched filter.
@@ -108,19 +122,10 @@ def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
     stays N(0, 1) without a mark. pixel (P,): flat indices into the (B, H, W) `shape` of the pictures.
     `highpass` or `window` None skips that step (experiments/whitening.py measures each).
     """
-    from ..distortions import gaussian_blur
-
-    def local_mean(values: torch.Tensor, sigma: float) -> torch.Tensor:
-        planes = projected.new_zeros(2, shape[0] * shape[1] * shape[2])
-        planes[0, pixel], planes[1, pixel] = values, 1.0
-        blurred = gaussian_blur(planes.reshape(2, shape[0], shape[1], shape[2]).transpose(0, 1), sigma)
-        blurred = blurred.transpose(0, 1).reshape(2, -1)[:, pixel]
-        return blurred[0] / blurred[1].clamp_min(1e-6)
-
-    detail = projected if highpass is None else projected - local_mean(projected, highpass)
+    detail = projected if highpass is None else projected - local_mean(projected, pixel, shape, highpass)
     if window is None:
         return detail
-    variance = local_mean(detail * detail, window)
+    variance = local_mean(detail * detail, pixel, shape, window)
     image = pixel // (shape[1] * shape[2])
     least = torch.zeros_like(variance)
     for index in torch.unique(image).tolist():  # each picture's own median
