@@ -144,3 +144,14 @@ def test_footprint_matches_how_the_picture_sampled_the_texture():
         matched, centre = (soft_bits(model.texture_encoder, spread_evidence(model, original, area, cameras, footprint=f))
                            for f in (True, False))
     assert float((matched * signs).mean()) > 1.3 * float((centre * signs).mean())
+
+
+def test_local_mean_averages_over_covered_pixels_only():
+    from meshseal.models.spread import local_mean
+
+    pixel = torch.tensor([0, 1, 2, 10])  # three neighbours in a row, one far away, of a 1 x 4 x 4 picture
+    values = torch.tensor([[1.0, 2.0], [1.0, 2.0], [1.0, 2.0], [5.0, 0.0]])
+    mean = local_mean(values, pixel, (1, 4, 4), 0.7)
+    assert torch.allclose(mean[:3], torch.tensor([1.0, 2.0]).expand(3, 2), atol=0.05)
+    assert torch.allclose(local_mean(values[:, 0], pixel, (1, 4, 4), 0.7), mean[:, 0])
+    assert local_mean(values[:0], pixel[:0], (1, 4, 4), 0.7).shape == (0, 2)  # nothing covered: nothing to average

@@ -102,7 +102,7 @@ def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int,
     only (the background does not bleed in). pixel (P,): flat indices into the (B, H, W) `shape`."""
     from ..distortions import gaussian_blur
 
-    flat = values.reshape(len(pixel), -1)
+    flat = values[:, None] if values.dim() == 1 else values
     channels = flat.shape[1]
     planes = values.new_zeros(channels + 1, shape[0] * shape[1] * shape[2])
     planes[:channels, pixel], planes[channels, pixel] = flat.T, 1.0
