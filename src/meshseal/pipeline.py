@@ -215,12 +215,14 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
 
     scale = supersampling(height, width)
     n_images = len(cameras)
-    fine = MeshRenderer()(found.relit, cameras, found.lights, height * scale, width * scale)
+    # Hard edges: the sub-pixel average is the antialiasing, and only wholly covered pixels are used.
+    fine = MeshRenderer(blend="hard")(found.relit, cameras, found.lights, height * scale, width * scale)
     pick = lambda image: pixels_at(image, found.fragments).index_select(0, found.keep)  # noqa: E731
     area = lambda image: F.avg_pool2d(image, scale) if scale > 1 else image  # noqa: E731
     usable = pick(area(fine.rgba[..., 3:].permute(0, 3, 1, 2)))[:, 0] > 0.999
     widths = ((0.0,) if scale > 1 else ()) + tuple(sigmas)
-    candidates = [found.expected] + [pick(area(gaussian_blur(fine.image, s * scale))) for s in widths]
+    averaged = area(fine.image)  # then blurred at the picture's resolution, as the template is
+    candidates = [found.expected] + [pick(gaussian_blur(averaged, s)) for s in widths]
     pixel = found.fragments.pixel.index_select(0, found.keep)[usable]
     image = found.image_index[usable]
     detail = lambda values: values - local_mean(values, pixel, (n_images, height, width), 1.5)  # noqa: E731
