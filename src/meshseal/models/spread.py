@@ -13,12 +13,14 @@ cell centres:
   ones; the whole residual is then scaled to a target texture PSNR (the strength knob).
 
 Detection has the original mesh and the picture's camera. The original is relit to match the picture
-(`pipeline.relit_residual`), the residual at every covered pixel is projected onto the mark's
+(`pipeline.relit_residual`) and sampled as the picture sampled it (`pipeline.picture_footprint`: point
+samples, or each pixel's area, blurred), the residual at every covered pixel is projected onto the mark's
 colour, whitened in the picture (`whiten`: slow relighting misfit removed, texture edges damped),
 weighted by the mark's expected amplitude there (recomputed from the original texture), and
-accumulated into the cells by the same bilinear weights. Per bit, z = sum(sign x cell) / sqrt(sum(cell^2)): with no mark
-the cell signs are independent of the picture, so z is a normalised Rademacher sum, about N(0, 1)
-whatever the picture shows; with a mark it grows with the square root of the cells seen.
+accumulated into the cells by the same bilinear weights (at the sub-pixel samples of an area
+footprint). Per bit, z = sum(sign x cell) / sqrt(sum(cell^2)): with no mark the cell signs are
+independent of the picture, so z is a normalised Rademacher sum, about N(0, 1) whatever the picture
+shows; with a mark it grows with the square root of the cells seen.
 """
 
 from __future__ import annotations
