@@ -155,3 +155,23 @@ def test_local_mean_averages_over_covered_pixels_only():
     assert torch.allclose(mean[:3], torch.tensor([1.0, 2.0]).expand(3, 2), atol=0.05)
     assert torch.allclose(local_mean(values[:, 0], pixel, (1, 4, 4), 0.7), mean[:, 0])
     assert local_mean(values[:0], pixel[:0], (1, 4, 4), 0.7).shape == (0, 2)  # nothing covered: nothing to average
+
+
+def test_untextured_materials_weigh_nothing():
+    """A material without a texture carries no mark: the matched filter reads nothing there (a missing
+    texture samples as white, which used to give those pixels the weight of a busy texture)."""
+    from dataclasses import replace
+
+    import meshseal
+    from meshseal.pipeline import spread_evidence
+
+    model = WatermarkModel(SPREAD)
+    bunny = normalize(to_z_up(load(FIXTURES / "bunny.glb")))
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(2))
+    for materials in ([bunny.materials[0]], [meshseal.Material(texture=None)]):
+        original = MeshBatch.from_mesh(replace(bunny, materials=materials))
+        with torch.no_grad():
+            picture = MeshRenderer()(original, cameras, lights, 128, 128).image.clamp(0, 1)
+            picture = (picture + 0.02 * torch.randn(picture.shape, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
+            evidence = spread_evidence(model, original, picture, cameras)
+        assert (float(evidence.abs().max()) > 0) == (materials[0].texture is not None)

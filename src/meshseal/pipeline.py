@@ -260,15 +260,19 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     found = relit_residual(mesh, image, cameras)
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
     with torch.no_grad():
-        masks = [None if t is None else encoder.amplitude(t[None])[0] for t in mesh.textures]
+        # An untextured material carries no mark: weight 0 (a None texture would sample as white).
+        masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
         pixel = found.fragments.pixel.index_select(0, found.keep)
         sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
         expected = found.expected if sampled is None else sampled.expected
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
+        textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
+        usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
         along = ((found.seen - expected) * encoder.colour.to(image)).sum(1)
         whitened = torch.zeros_like(along)
-        whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **(whitening or {}))
+        if bool(usable.any()):
+            whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **(whitening or {}))
         whitened = whitened * gain
         point = torch.ones(n_images, dtype=torch.bool) if sampled is None else sampled.sigma.isnan()
         at_point = point.to(found.image_index.device).index_select(0, found.image_index)
