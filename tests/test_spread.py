@@ -26,6 +26,19 @@ def _marked_and_original(strength: float = 1.0):
     return model, mesh, message, texture, marked_texture
 
 
+def _quantise(pictures: torch.Tensor) -> torch.Tensor:
+    """8-bit values, as saved pictures have."""
+    return torch.round(pictures.clamp(0, 1) * 255) / 255
+
+
+def _original_and_marked_batches():
+    """The bunny, original and marked (strength 1): model, message, original batch, marked batch."""
+    model, mesh, message, _, marked_texture = _marked_and_original()
+    marked = MeshBatch.from_mesh(mesh)
+    marked.textures = [marked_texture[0]]
+    return model, message, MeshBatch.from_mesh(mesh), marked
+
+
 def test_mark_strength_sets_the_texture_psnr():
     for strength, target in ((1.0, 40.0), (2.0, 40.0 - 20 * 0.30103)):
         _, _, _, texture, marked = _marked_and_original(strength)
@@ -34,15 +47,11 @@ def test_mark_strength_sets_the_texture_psnr():
 
 
 def test_matched_filter_reads_the_mark_and_finds_none_in_the_original():
-    model, mesh, message, _, marked_texture = _marked_and_original()
-    original = MeshBatch.from_mesh(mesh)
-    marked = MeshBatch.from_mesh(mesh)
-    marked.textures = [marked_texture[0]]
+    model, message, original, marked = _original_and_marked_batches()
     cameras, lights = sample_views(3, "seed", torch.Generator().manual_seed(0))
-    quantise = lambda x: torch.round(x.clamp(0, 1) * 255) / 255  # noqa: E731
     with torch.no_grad():
-        seen_marked = quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
-        seen_clean = quantise(MeshRenderer()(original, cameras, lights, 256, 256).image)
+        seen_marked = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+        seen_clean = _quantise(MeshRenderer()(original, cameras, lights, 256, 256).image)
     z_marked = torch.cat([read_bits(model, original, seen_marked[[i]], cameras[[i]]) for i in range(3)])
     z_clean = torch.cat([read_bits(model, original, seen_clean[[i]], cameras[[i]]) for i in range(3)])
     assert ((z_marked > 0).float() == message).float().mean() >= 0.97
@@ -125,17 +134,13 @@ def test_footprint_matches_how_the_picture_sampled_the_texture():
     from meshseal.pipeline import picture_footprint, relit_residual, spread_evidence
     from meshseal.models.spread import soft_bits
 
-    model, mesh, message, _, marked_texture = _marked_and_original()
-    original = MeshBatch.from_mesh(mesh)
-    marked = MeshBatch.from_mesh(mesh)
-    marked.textures = [marked_texture[0]]
+    model, message, original, marked = _original_and_marked_batches()
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
-    quantise = lambda x: torch.round(x.clamp(0, 1) * 255) / 255  # noqa: E731
     signs = 2 * message - 1
     with torch.no_grad():
-        point = quantise(MeshRenderer()(marked, cameras, lights, 128, 128).image)
+        point = _quantise(MeshRenderer()(marked, cameras, lights, 128, 128).image)
         fine = MeshRenderer()(marked, cameras, lights, 512, 512).image
-        area = quantise(F.avg_pool2d(gaussian_blur(fine, 2.0), 4))  # pixel area, then a 0.5 px blur
+        area = _quantise(F.avg_pool2d(gaussian_blur(fine, 2.0), 4))  # pixel area, then a 0.5 px blur
         for picture, sigma in ((point, None), (area, 0.5)):
             found = picture_footprint(original, relit_residual(original, picture, cameras), cameras, 128, 128)
             assert (sigma is None and bool(found.sigma.isnan().all())) or float(found.sigma[0]) == sigma

@@ -185,15 +185,13 @@ class Footprint:
     game engines, mipmaps, resizing, blur). `expected` (P, 3): the relit original under each picture's
     footprint at the kept pixels; `usable` (P,): the kept pixels that footprint covers wholly; `sigma`
     (B,): NaN for point samples. The supersampled render (`scale` x the picture's size) gives the
-    sub-pixel `fragments`, `uv` and `material` that the matched filter's template is built from."""
+    sub-pixel `fragments` that the matched filter's template is built from."""
 
     expected: torch.Tensor
     usable: torch.Tensor
     sigma: torch.Tensor
     scale: int
     fragments: object
-    uv: torch.Tensor
-    material: torch.Tensor
 
 
 def supersampling(height: int, width: int) -> int:
@@ -211,7 +209,6 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     the pixels every candidate covers. The choice looks at the picture and the original only, never
     at a key, so the matched filter's null distribution stays what it was."""
     from .models.spread import local_mean
-    from .render.renderer import per_fragment
 
     scale = supersampling(height, width)
     n_images = len(cameras)
@@ -225,22 +222,18 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     candidates = [found.expected] + [pick(gaussian_blur(averaged, s)) for s in widths]
     pixel = found.fragments.pixel.index_select(0, found.keep)[usable]
     image = found.image_index[usable]
-    detail = lambda values: values - local_mean(values, pixel, (n_images, height, width), 1.5)  # noqa: E731
-    seen = detail(found.seen[usable])
-    scores = []
-    for candidate in candidates:
-        predicted = detail(candidate[usable])
-        agree = seen.new_zeros(n_images).index_add_(0, image, (seen * predicted).sum(1))
-        power = seen.new_zeros(n_images).index_add_(0, image, (predicted * predicted).sum(1))
-        scores.append(torch.nan_to_num(agree / power.sqrt(), nan=-float("inf")))
-    choice = torch.stack(scores).argmax(0)  # (B,); a picture with nothing to compare keeps point samples
+    values = torch.cat([found.seen] + candidates, 1)[usable]  # (U, 3 + 3K): one masked blur for all
+    detail = (values - local_mean(values, pixel, (n_images, height, width), 1.5)).reshape(len(pixel), -1, 3)
+    seen, predicted = detail[:, :1], detail[:, 1:]
+    agree = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (seen * predicted).sum(-1))
+    power = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (predicted * predicted).sum(-1))
+    scores = torch.nan_to_num(agree / power.sqrt(), nan=-float("inf"))
+    choice = scores.argmax(1)  # (B,); a picture with nothing to compare keeps point samples
     sigma = torch.tensor((float("nan"),) + widths, device=choice.device)[choice]
     per_pixel = choice.index_select(0, found.image_index)
     expected = torch.stack(candidates).gather(0, per_pixel[None, :, None].expand(1, -1, 3))[0]
     usable = usable | (per_pixel == 0)  # point samples keep every interior pixel, as before
-    uvs = mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs
-    return Footprint(expected, usable, sigma, scale, fine.fragments, interpolate(uvs, fine.fragments),
-                     per_fragment(mesh.face_material, fine.fragments))
+    return Footprint(expected, usable, sigma, scale, fine.fragments)
 
 
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
@@ -255,6 +248,7 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     `models.spread.whiten` other than its defaults (experiments)."""
     from .models.spread import cell_sums, whiten
     from .render import sample_textures
+    from .render.renderer import per_fragment
 
     encoder = model.texture_encoder
     found = relit_residual(mesh, image, cameras)
@@ -276,9 +270,11 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         whitened = whitened * gain
         point = torch.ones(n_images, dtype=torch.bool) if sampled is None else sampled.sigma.isnan()
         at_point = point.to(found.image_index.device).index_select(0, found.image_index)
-        amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
-        sums = cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images)
-        if sampled is None or bool(point.all()):
+        sums = whitened.new_zeros(n_images, encoder.chips ** 2)
+        if bool(point.any()):
+            amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
+            sums = cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images)
+        if bool(point.all()):
             return sums
         # The template under an area footprint: the adjoint of (blur, then average each pixel's
         # sub-pixel samples), i.e. the whitened residual blurred and spread over the sub-pixels.
@@ -288,9 +284,11 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             canvas[index] = gaussian_blur(canvas[index: index + 1], float(sampled.sigma[index]))[0]
         scale = sampled.scale
         fine = F.interpolate(canvas, scale_factor=scale, mode="nearest") / scale ** 2 if scale > 1 else canvas
-        amplitude = sample_textures(masks, sampled.uv, sampled.material).norm(dim=1)
-        values = fine.reshape(-1).index_select(0, sampled.fragments.pixel) * amplitude
-        return sums + cell_sums(encoder, values, sampled.uv, sampled.fragments.batch, n_images)
+        fragments = sampled.fragments
+        uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
+        amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
+        values = fine.reshape(-1).index_select(0, fragments.pixel) * amplitude
+        return sums + cell_sums(encoder, values, uv, fragments.batch, n_images)
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,
