@@ -162,6 +162,21 @@ def test_local_mean_averages_over_covered_pixels_only():
     assert local_mean(values[:0], pixel[:0], (1, 4, 4), 0.7).shape == (0, 2)  # nothing covered: nothing to average
 
 
+def test_a_picture_without_wholly_covered_pixels_reads_as_point_samples():
+    """A tiny or thin object may leave no pixel that every footprint covers: nothing to compare, so
+    the picture keeps point samples (this crashed on an empty reshape)."""
+    from meshseal.pipeline import picture_footprint, relit_residual, spread_evidence
+
+    model, _, original, marked = _original_and_marked_batches()
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        picture = _quantise(MeshRenderer()(marked, cameras, lights, 8, 8).image)
+        found = relit_residual(original, picture, cameras)
+        sampled = picture_footprint(original, found, cameras, 8, 8)
+        assert bool(sampled.sigma.isnan().all()) and len(sampled.expected) == len(found.keep)
+        assert spread_evidence(model, original, picture, cameras).shape == (1, model.texture_encoder.chips ** 2)
+
+
 def test_untextured_materials_weigh_nothing():
     """A material without a texture carries no mark: the matched filter reads nothing there (a missing
     texture samples as white, which used to give those pixels the weight of a busy texture)."""

@@ -223,7 +223,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     pixel = found.fragments.pixel.index_select(0, found.keep)[usable]
     image = found.image_index[usable]
     values = torch.cat([found.seen] + candidates, 1)[usable]  # (U, 3 + 3K): one masked blur for all
-    detail = (values - local_mean(values, pixel, (n_images, height, width), 1.5)).reshape(len(pixel), -1, 3)
+    detail = (values - local_mean(values, pixel, (n_images, height, width), 1.5)).reshape(len(pixel), 1 + len(candidates), 3)
     seen, predicted = detail[:, :1], detail[:, 1:]
     agree = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (seen * predicted).sum(-1))
     power = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (predicted * predicted).sum(-1))
