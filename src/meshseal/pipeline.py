@@ -184,14 +184,16 @@ class Footprint:
     pixel's area blurred by a Gaussian of `sigma` pixels (antialiasing and pixel filters of Blender and
     game engines, mipmaps, resizing, blur). `expected` (P, 3): the relit original under each picture's
     footprint at the kept pixels; `usable` (P,): the kept pixels that footprint covers wholly; `sigma`
-    (B,): NaN for point samples. The supersampled render (`scale` x the picture's size) gives the
-    sub-pixel `fragments` that the matched filter's template is built from."""
+    (B,): NaN for point samples. `fragments`: the rasterization `scale` times finer that sampled each
+    pixel's area, and `parent` (F,): the picture pixel (flat index into B*H*W) of each of its
+    fragments; the matched filter's template is built from them."""
 
     expected: torch.Tensor
     usable: torch.Tensor
     sigma: torch.Tensor
-    scale: int
     fragments: object
+    parent: torch.Tensor
+    scale: int
 
 
 def supersampling(height: int, width: int) -> int:
@@ -206,25 +208,34 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     under which the relit original best predicts the picture's fine detail: the largest normalised
     correlation between the picture and the prediction, both high-passed (their local mean over the
     object's pixels, sigma 1.5 px, taken off: a relighting misfit is slow and must not decide), over
-    the pixels every candidate covers. The choice looks at the picture and the original only, never
-    at a key, so the matched filter's null distribution stays what it was."""
+    the pixels every candidate covers. The pixel's area is the mean of a rasterization `supersampling`
+    times finer, shaded and summed per pixel without forming the finer image. The choice looks at
+    the picture and the original only, never at a key, so the matched filter's null stays the same."""
     from .models.spread import local_mean
+    from .render import rasterize
 
     scale = supersampling(height, width)
     n_images = len(cameras)
-    # Hard edges: the sub-pixel average is the antialiasing, and only wholly covered pixels are used.
-    fine = MeshRenderer(blend="hard")(found.relit, cameras, found.lights, height * scale, width * scale)
+    relit = found.relit
+    positions = relit.positions.expand(n_images, -1, -1) if relit.positions.shape[0] == 1 else relit.positions
+    # Hard edges: the sub-pixel mean is the antialiasing, and only wholly covered pixels are used.
+    fine = rasterize(cameras.world_to_clip(positions, width / height), relit.faces, height * scale, width * scale)
+    lit = MeshRenderer().shade(relit, cameras, found.lights, fine)
+    within = fine.pixel % (height * scale * width * scale)
+    row = torch.div(within, width * scale, rounding_mode="floor")
+    column = within - row * width * scale
+    parent = fine.batch * height * width + torch.div(row, scale, rounding_mode="floor") * width + column // scale
+    sums = lit.new_zeros(n_images * height * width, 4).index_add_(0, parent, F.pad(lit, (0, 1), value=1.0)) / scale ** 2
     pick = lambda image: pixels_at(image, found.fragments).index_select(0, found.keep)  # noqa: E731
-    area = lambda image: F.avg_pool2d(image, scale) if scale > 1 else image  # noqa: E731
-    usable = pick(area(fine.rgba[..., 3:].permute(0, 3, 1, 2)))[:, 0] > 0.999
+    usable = sums[:, 3].index_select(0, found.fragments.pixel.index_select(0, found.keep)) > 0.999
     widths = ((0.0,) if scale > 1 else ()) + tuple(sigmas)
-    averaged = area(fine.image)  # then blurred at the picture's resolution, as the template is
+    averaged = sums[:, :3].reshape(n_images, height, width, 3).permute(0, 3, 1, 2)  # blurred at this resolution
     candidates = [found.expected] + [pick(gaussian_blur(averaged, s)) for s in widths]
     pixel = found.fragments.pixel.index_select(0, found.keep)[usable]
     image = found.image_index[usable]
     values = torch.cat([found.seen] + candidates, 1)[usable]  # (U, 3 + 3K): one masked blur for all
-    detail = (values - local_mean(values, pixel, (n_images, height, width), 1.5)).reshape(len(pixel), 1 + len(candidates), 3)
-    seen, predicted = detail[:, :1], detail[:, 1:]
+    detail = values - local_mean(values, pixel, (n_images, height, width), 1.5)
+    seen, predicted = detail[:, :3].unsqueeze(1), detail[:, 3:].reshape(len(pixel), len(candidates), 3)
     agree = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (seen * predicted).sum(-1))
     power = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (predicted * predicted).sum(-1))
     scores = torch.nan_to_num(agree / power.sqrt(), nan=-float("inf"))
@@ -233,7 +244,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     per_pixel = choice.index_select(0, found.image_index)
     expected = torch.stack(candidates).gather(0, per_pixel[None, :, None].expand(1, -1, 3))[0]
     usable = usable | (per_pixel == 0)  # point samples keep every interior pixel, as before
-    return Footprint(expected, usable, sigma, scale, fine.fragments)
+    return Footprint(expected, usable, sigma, fine, parent, scale)
 
 
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
@@ -282,13 +293,11 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         canvas = canvas.reshape(n_images, 1, height, width)
         for index in torch.nonzero(~point).squeeze(1).tolist():
             canvas[index] = gaussian_blur(canvas[index: index + 1], float(sampled.sigma[index]))[0]
-        scale = sampled.scale
-        fine = F.interpolate(canvas, scale_factor=scale, mode="nearest") / scale ** 2 if scale > 1 else canvas
         fragments = sampled.fragments
+        spread = canvas.reshape(-1).index_select(0, sampled.parent) / sampled.scale ** 2  # the adjoint of the mean
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
-        values = fine.reshape(-1).index_select(0, fragments.pixel) * amplitude
-        return sums + cell_sums(encoder, values, uv, fragments.batch, n_images)
+        return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images)
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,

@@ -112,26 +112,7 @@ class MeshRenderer:
         positions = batch.positions.expand(n_batch, -1, -1) if batch.positions.shape[0] == 1 else batch.positions
         if fragments is None:
             fragments = rasterize(cameras.world_to_clip(positions, width / height), batch.faces, height, width)
-        # One gather for every attribute: world position, normal and uv.
-        normals = batch.normals.expand(n_batch, -1, -1) if batch.normals.shape[0] == 1 else batch.normals
-        attributes = [positions, normals]
-        if batch.uvs is not None:
-            attributes.append(batch.uvs.expand(n_batch, -1, -1) if batch.uvs.shape[0] == 1 else batch.uvs)
-        interpolated = interpolate(torch.cat(attributes, dim=-1), fragments)
-        world, normal = interpolated[:, :3], interpolated[:, 3:6]
-        material = per_fragment(batch.face_material, fragments)
-        if batch.uvs is None:
-            albedo = world.new_ones(world.shape[0], 3)
-        else:
-            albedo = sample_textures(batch.textures, interpolated[:, 6:8], material)
-        # index_select: several times faster on the CPU than advanced indexing for these lookups.
-        by_material = lambda table: table.index_select(0, material)  # noqa: E731
-        by_image = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
-        albedo = albedo * by_material(batch.diffuse)
-        lit = self.shader(world, normal, albedo, by_image(cameras.eye), by_image(lights.position),
-                          by_image(lights.intensity), by_material(batch.ambient), by_material(batch.specular),
-                          by_material(batch.shininess))
-        lit = lit.clamp(0.0, 1.0)
+        lit = self.shade(batch, cameras, lights, fragments)
         background = torch.as_tensor(background, dtype=dtype, device=device).reshape(-1, 3).expand(n_batch, 3)
         color = scatter_to_image(lit, fragments, 0.0)
         alpha = (fragments.pix_to_face >= 0).to(dtype)
@@ -146,6 +127,29 @@ class MeshRenderer:
         splat_xy = scatter_to_image(surface_xy, fragments, 0.0)
         image, coverage = splat(color, alpha, splat_xy, background, self.sigma)
         return RenderOutput(torch.cat([image, coverage.unsqueeze(-1)], dim=-1), fragments)
+
+    def shade(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, fragments: Fragments) -> torch.Tensor:
+        """The lit colour (P, 3) in [0, 1] of each fragment (before any blending)."""
+        # One gather for every attribute: world position, normal and uv.
+        n_batch = len(cameras)
+        expand = lambda table: table.expand(n_batch, -1, -1) if table.shape[0] == 1 else table  # noqa: E731
+        attributes = [expand(batch.positions), expand(batch.normals)]
+        attributes += [] if batch.uvs is None else [expand(batch.uvs)]
+        interpolated = interpolate(torch.cat(attributes, dim=-1), fragments)
+        world, normal = interpolated[:, :3], interpolated[:, 3:6]
+        material = per_fragment(batch.face_material, fragments)
+        if batch.uvs is None:
+            albedo = world.new_ones(world.shape[0], 3)
+        else:
+            albedo = sample_textures(batch.textures, interpolated[:, 6:8], material)
+        # index_select: several times faster on the CPU than advanced indexing for these lookups.
+        by_material = lambda table: table.index_select(0, material)  # noqa: E731
+        by_image = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
+        albedo = albedo * by_material(batch.diffuse)
+        lit = self.shader(world, normal, albedo, by_image(cameras.eye), by_image(lights.position),
+                          by_image(lights.intensity), by_material(batch.ambient), by_material(batch.specular),
+                          by_material(batch.shininess))
+        return lit.clamp(0.0, 1.0)
 
     def render(self, mesh: Mesh, cameras: Cameras, lights: PointLights, width: int, height: int,
                background=(0.0, 0.0, 0.0)) -> torch.Tensor:
