@@ -146,9 +146,32 @@ def test_footprint_matches_how_the_picture_sampled_the_texture():
             assert (sigma is None and bool(found.sigma.isnan().all())) or float(found.sigma[0]) == sigma
         assert torch.equal(spread_evidence(model, original, point, cameras),
                            spread_evidence(model, original, point, cameras, footprint=False))
-        matched, centre = (soft_bits(model.texture_encoder, spread_evidence(model, original, area, cameras, footprint=f))
+        # The footprint alone (the brightness fit absorbs part of a point prediction's misfit too).
+        matched, centre = (soft_bits(model.texture_encoder, spread_evidence(model, original, area, cameras, footprint=f,
+                                                                            brightness=False))
                            for f in (True, False))
     assert float((matched * signs).mean()) > 1.3 * float((centre * signs).mean())
+
+
+def test_each_pixels_brightness_is_taken_off():
+    """Pixels darker or brighter than the prediction on their own (a shadow; two coincident sheets, one
+    lit from behind, that Blender z-fights between) leave the mark's colour where it was: the matched
+    filter fits each pixel's brightness first and reads such a picture about as well as a clean one."""
+    from meshseal.models.spread import soft_bits
+    from meshseal.pipeline import spread_evidence
+
+    model, message, original, marked = _original_and_marked_batches()
+    signs = 2 * message - 1
+    cameras, lights = sample_views(2, "seed", torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        clean = MeshRenderer()(marked, cameras, lights, 128, 128).image
+        dark = torch.rand(2, 1, 128, 128, generator=torch.Generator().manual_seed(5)) < 0.4
+        speckled = _quantise(clean * torch.where(dark, 0.35, 1.0))
+        fitted, ignored = (soft_bits(model.texture_encoder, spread_evidence(model, original, speckled, cameras,
+                                                                           brightness=b)) for b in (True, False))
+        reference = soft_bits(model.texture_encoder, spread_evidence(model, original, _quantise(clean), cameras))
+    assert float((fitted * signs).mean()) > 0.85 * float((reference * signs).mean())
+    assert float((fitted * signs).mean()) > 2.0 * float((ignored * signs).mean())
 
 
 def test_local_mean_averages_over_covered_pixels_only():

@@ -248,15 +248,17 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
 
 
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
-                    whitening: dict | None = None, footprint: bool = True) -> torch.Tensor:
+                    whitening: dict | None = None, footprint: bool = True, brightness: bool = True) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
     original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
 
     With `footprint` (the default) each picture's sampling is estimated first (`picture_footprint`):
     the prediction subtracted and the template the residual is matched against are both the
     original's texture as that picture sampled it, so pictures from engines that average over the
-    pixel (and resized or blurred ones) are read with a filter matched to them. `whitening`: options of
-    `models.spread.whiten` other than its defaults (experiments)."""
+    pixel (and resized or blurred ones) are read with a filter matched to them. With `brightness` (the
+    default) each pixel's brightness relative to the prediction is fitted and taken off first (see
+    below). `whitening`: options of `models.spread.whiten` other than its defaults (experiments). Every
+    step looks at the picture and the original only, never at a key: z stays N(0, 1) without a mark."""
     from .models.spread import cell_sums, whiten
     from .render import sample_textures
     from .render.renderer import per_fragment
@@ -274,7 +276,17 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
         textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
         usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
-        along = ((found.seen - expected) * encoder.colour.to(image)).sum(1)
+        colour = encoder.colour.to(image)
+        if brightness:
+            # Each pixel's own brightness against the prediction (a shadow, one of two coincident sheets
+            # lit from behind, a tone curve): taken off along the predicted colour, so the residual
+            # keeps the part of the mark orthogonal to it, and the template scales by what is left.
+            ratio = (found.seen * expected).sum(1) / (expected * expected).sum(1).clamp_min(1e-6)
+            along = ((found.seen - ratio[:, None] * expected) * colour).sum(1)
+            direction = expected / expected.norm(dim=1, keepdim=True).clamp_min(1e-6)
+            gain = gain * ratio.clamp(0.0, 3.0) * (1.0 - (direction * colour).sum(1) ** 2)
+        else:
+            along = ((found.seen - expected) * colour).sum(1)
         whitened = torch.zeros_like(along)
         if bool(usable.any()):
             whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **(whitening or {}))
