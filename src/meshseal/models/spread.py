@@ -14,10 +14,12 @@ cell centres:
 
 Detection has the original mesh and the picture's camera. The original is relit to match the picture
 (`pipeline.relit_residual`) and sampled as the picture sampled it (`pipeline.picture_footprint`: point
-samples, or each pixel's area, blurred), the residual at every covered pixel is projected onto the mark's
-colour, whitened in the picture (`whiten`: slow relighting misfit removed, texture edges damped),
-weighted by the mark's expected amplitude there (recomputed from the original texture), and
-accumulated into the cells by the same bilinear weights (at the sub-pixel samples of an area
+samples, or each pixel's area, blurred), each pixel's own brightness against that prediction is fitted
+and taken off along the predicted colour (shadows, sheets lit from behind, tone curves), the residual at
+every covered pixel is projected onto the mark's colour, whitened in the picture (`whiten`: slow
+relighting misfit removed, texture edges damped), weighted by the mark's expected amplitude there
+(recomputed from the original texture, times what the brightness fit left of it), and accumulated into
+the cells by the same bilinear weights (at the sub-pixel samples of an area
 footprint). Per bit, z = sum(sign x cell) / sqrt(sum(cell^2)): with no mark the cell signs are
 independent of the picture, so z is a normalised Rademacher sum, about N(0, 1) whatever the picture
 shows; with a mark it grows with the square root of the cells seen.
