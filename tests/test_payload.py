@@ -205,6 +205,44 @@ def test_match_pvalue_is_uniform_without_a_mark_and_tiny_with_the_message():
         match_pvalue(z, bits * 2)
 
 
+def _rademacher(weights: np.ndarray, draws: int, rng) -> np.ndarray:
+    """Soft bits z (draws, N) = sum_i w_bi s_i with fair random signs s: the exact null given a picture."""
+    unit = weights / np.sqrt((weights ** 2).sum(-1, keepdims=True)).clip(1e-30)
+    return np.einsum("bm,dbm->db", unit, rng.choice([-1.0, 1.0], size=(draws, *weights.shape)))
+
+
+def test_exact_null_matches_simulated_signs_where_the_normal_model_does_not():
+    rng = np.random.default_rng(4)
+    weights = rng.exponential(size=(64, 12)) ** 2  # a few cells carry most of each bit: light tails
+    weights[:4] = 0.0  # bits the picture does not see: z = 0
+    z = _rademacher(weights, 200_000, rng)
+    t = (z ** 2).sum(-1)
+    s = (z * (2 * (np.arange(64) % 2) - 1)).sum(-1) / 8  # match_pvalue's statistic for bits 0101...
+    for level in (0.5, 0.05, 1e-3):
+        threshold = np.quantile(t, 1 - level)
+        picture = z[np.argmin(np.abs(t - threshold))]
+        assert detection_pvalue(picture, weights) == pytest.approx(level, rel=0.15)
+        if level < 0.01:
+            assert detection_pvalue(picture) > 10 * level  # chi-square(64) over-states the tail
+        mark = np.quantile(s, 1 - level)
+        assert match_pvalue(z[np.argmin(np.abs(s - mark))], np.arange(64) % 2, weights) == pytest.approx(level, rel=0.15)
+    sample = rng.choice(len(z), 1000, replace=False)
+    assert stats.kstest(detection_pvalue(z[sample], np.broadcast_to(weights, (1000, *weights.shape))),
+                        "uniform").pvalue > 0.01
+
+
+def test_exact_null_is_chi_square_for_many_equal_cells_and_handles_the_extremes():
+    z = np.random.default_rng(5).standard_normal(64) * 1.4
+    assert detection_pvalue(z, np.ones((64, 400))) == pytest.approx(detection_pvalue(z), rel=0.05)
+    one_cell = np.zeros((64, 8))
+    one_cell[:, 0] = 1.0  # z^2 = 1 for sure: T = 64
+    assert detection_pvalue(np.ones(64), one_cell) == 1.0 and detection_pvalue(np.full(64, 1.1), one_cell) < 1e-300
+    assert 0 < detection_pvalue(np.full(64, 30.0), np.ones((64, 50))) < 1e-300
+    assert detection_pvalue(np.zeros(64), np.zeros((64, 5))) == 1.0
+    with pytest.raises(MeshsealError, match="do not fit"):
+        detection_pvalue(z, np.ones((32, 4)))
+
+
 def test_pooling_keeps_the_null_and_adds_up_the_mark():
     rng = np.random.default_rng(2)
     pooled = pool(rng.standard_normal((4, 100_000, 64)))

@@ -218,3 +218,32 @@ def test_untextured_materials_weigh_nothing():
             picture = (picture + 0.02 * torch.randn(picture.shape, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
             evidence = spread_evidence(model, original, picture, cameras)
         assert (float(evidence.abs().max()) > 0) == (materials[0].texture is not None)
+
+
+def test_bit_weights_give_each_picture_its_own_exact_null_over_keys():
+    """One picture's cell evidence read under many keys: z_b is the bit's cells' sum with the key's signs
+    over their norm (what `bit_weights` holds), and the exact-null p-values over keys are uniform, while
+    the chi-square of the N(0, 1) model over-states them for evidence in few, uneven cells."""
+    from scipy import stats
+
+    from meshseal import payload
+    from meshseal.models.spread import bit_weights, soft_bits
+
+    encoder = WatermarkModel(SPREAD).texture_encoder
+    generator = torch.Generator().manual_seed(0)
+    sums = torch.zeros(1, encoder.chips ** 2, dtype=torch.float64)
+    seen = torch.randperm(encoder.chips ** 2, generator=generator)[:900]  # a small object: ~14 cells a bit
+    sums[0, seen] = torch.randn(900, generator=generator, dtype=torch.float64) ** 3  # heavy-tailed evidence
+    exact, gaussian = [], []
+    for key in range(300):
+        weights = bit_weights(encoder, sums, key)
+        assign, _ = encoder.pattern(key)
+        assert weights.shape == (1, 64, encoder.chips ** 2 // 64)
+        for bit in (0, 63):
+            cells = sums[0, assign == bit].abs()
+            assert torch.allclose(weights[0, bit].sort().values[-len(cells):], cells.sort().values / cells.norm())
+        z = soft_bits(encoder, sums, key)[0]
+        exact.append(payload.detection_pvalue(z, weights[0]))
+        gaussian.append(payload.detection_pvalue(z))
+    assert stats.kstest(exact, "uniform").pvalue > 0.01
+    assert stats.kstest(gaussian, "uniform").pvalue < 0.01

@@ -77,7 +77,7 @@ class Detection:
     `payload.FPR` (None for models without calibrated soft bits); p_value: the chance that a picture
     without such a mark scores this high (see payload.detection_pvalue / match_pvalue); message: the
     decoded text or ID, None when not detected or not decodable; bits: the raw hard bits '0101...';
-    soft: the soft bits (matched-filter z, about N(0, 1) each without a mark; learned models: logits);
+    soft: the soft bits (matched-filter z, mean 0 and variance 1 each without a mark; learned models: logits);
     errors_corrected: raw bits the error correction flipped. `box` is the object's square box (cx, cy,
     half) in the picture; `camera` 'metadata' or 'registered' for informed models.
     """
@@ -273,8 +273,9 @@ class Watermarker:
 
     @property
     def calibrated(self) -> bool:
-        """True when the model's soft bits are z-scores, N(0, 1) without a mark: detection decisions
-        and p-values need them (spread-spectrum models)."""
+        """True when the model's soft bits are matched-filter z-scores with a known null (a Rademacher
+        sum per bit given the picture's cell evidence): detection decisions and p-values need them
+        (spread-spectrum models)."""
         return self.model.config.decoder == "matched"
 
     # ------------------------------------------------------------ detect
@@ -312,22 +313,24 @@ class Watermarker:
                  "registration_iou": first.registration_iou if len(readings) == 1 else None,
                  "pictures": len(readings)}
         evidence = torch.stack([r.evidence for r in readings]).sum(0, keepdim=True)
+        weights = None
         if self.calibrated:
-            from .models.spread import soft_bits
+            from .models.spread import bit_weights, soft_bits
 
             soft = soft_bits(self.model.texture_encoder, evidence, self._key_seed(key))[0].double()
+            weights = bit_weights(self.model.texture_encoder, evidence, self._key_seed(key))[0].double()
         else:
             soft = evidence[0].double()
         bits = "".join("1" if v > 0 else "0" for v in soft.tolist())
         if self.n_bits not in payload.SCHEMAS:
             return Detection(bits, soft.tolist(), None, None, None, None, **extra)
         decoded = payload.decode(soft, key)
-        any_mark_p = float(payload.detection_pvalue(soft)) if self.calibrated else None
+        any_mark_p = float(payload.detection_pvalue(soft, weights)) if self.calibrated else None
         marked = any_mark_p is not None and payload.detected(any_mark_p)
         if expect is not None:
             expected = payload.encode(expect, key, self.n_bits)
             if self.calibrated:
-                p_value = float(payload.match_pvalue(soft, expected))
+                p_value = float(payload.match_pvalue(soft, expected, weights))
             else:
                 p_value = payload.binomial_pvalue(int(((soft > 0).float() == expected).sum()), self.n_bits)
             # A mark of another message still correlates with this one: the code must read this one.

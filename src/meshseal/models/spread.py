@@ -21,8 +21,9 @@ relighting misfit removed, texture edges damped), weighted by the mark's expecte
 (recomputed from the original texture, times what the brightness fit left of it), and accumulated into
 the cells by the same bilinear weights (at the sub-pixel samples of an area
 footprint). Per bit, z = sum(sign x cell) / sqrt(sum(cell^2)): with no mark the cell signs are
-independent of the picture, so z is a normalised Rademacher sum, about N(0, 1) whatever the picture
-shows; with a mark it grows with the square root of the cells seen.
+independent of the picture, so z is a normalised Rademacher sum (mean 0, variance 1, whatever the
+picture shows; `bit_weights` gives its weights, from which `payload` computes exact p-values); with a
+mark it grows with the square root of the cells seen.
 """
 
 from __future__ import annotations
@@ -167,3 +168,17 @@ def soft_bits(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int 
     total = signed.new_zeros(len(sums), encoder.n_bits).index_add(1, assign, signed)
     energy = signed.new_zeros(len(sums), encoder.n_bits).index_add(1, assign, signed * signed)
     return total / energy.sqrt().clamp_min(1e-12)
+
+
+def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
+    """Each bit's cell weights (B, N, M) for `payload`'s exact null: |cell| / sqrt(sum(cell^2)) over
+    the bit's cells, zero-padded to M, the most cells any bit has. Given the picture, z_b =
+    sum_i w_bi s_i with the key's cell signs s_i, independent fair coins without a mark."""
+    assign, _ = encoder.pattern(key_seed)
+    assign = assign.to(sums.device)
+    order = torch.argsort(assign, stable=True)
+    counts = torch.bincount(assign, minlength=encoder.n_bits)
+    slot = torch.arange(len(assign), device=sums.device) - (torch.cumsum(counts, 0) - counts)[assign[order]]
+    weights = sums.new_zeros(len(sums), encoder.n_bits, int(counts.max()))
+    weights[:, assign[order], slot] = sums[:, order].abs()
+    return weights / weights.pow(2).sum(-1, keepdim=True).sqrt().clamp_min(1e-30)
