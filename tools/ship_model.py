@@ -73,7 +73,7 @@ def main() -> int:
                         "read by a matched filter (the residual whitened in the picture) after un-rendering the picture onto the "
                         "original mesh relit to match it "
                         "(detection needs the original mesh and the picture's camera: from the PNG's metadata, or "
-                        "registered). Its soft bits are z-scores, N(0, 1) without a mark, hence p-values")
+                        "registered). Its soft bits are z-scores (given the picture, a Rademacher sum per bit without a mark: exact p-values, `payload.detection_pvalue`)")
     elif config["decoder"] == "uv":
         architecture = (f"informed decoder `uv` ({config['decoder_channels']} channels) reading the picture un-rendered "
                         f"onto a {config['uv_grid']}^2 UV grid of the original mesh (detection needs the original mesh "

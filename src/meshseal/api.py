@@ -324,9 +324,9 @@ class Watermarker:
         bits = "".join("1" if v > 0 else "0" for v in soft.tolist())
         if self.n_bits not in payload.SCHEMAS:
             return Detection(bits, soft.tolist(), None, None, None, None, **extra)
-        decoded = payload.decode(soft, key)
         any_mark_p = float(payload.detection_pvalue(soft, weights)) if self.calibrated else None
         marked = any_mark_p is not None and payload.detected(any_mark_p)
+        decoded = payload.decode(soft, key) if marked or expect is not None else None  # no message to report else
         if expect is not None:
             expected = payload.encode(expect, key, self.n_bits)
             if self.calibrated:

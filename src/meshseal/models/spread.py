@@ -62,6 +62,7 @@ class SpreadSpectrumEncoder(nn.Module):
         self.register_buffer("sign", sign)
         self.register_buffer("colour", F.normalize(torch.tensor(COLOURS[colour]), dim=0))
         self._keyed: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._amplitudes: list[tuple[torch.Tensor, int, torch.Tensor]] = []
 
     def _draw(self, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
         generator = torch.Generator().manual_seed(seed)
@@ -81,8 +82,18 @@ class SpreadSpectrumEncoder(nn.Module):
         return assign.to(self.assign.device), sign.to(self.sign.device)
 
     def amplitude(self, texture: torch.Tensor) -> torch.Tensor:
-        """Unsigned mark field (B, 3, H, W) for textures (B, 3, H, W): the mask times the colour."""
-        return activity_mask(texture, self.window, self.floor) * self.colour.to(texture)[None, :, None, None]
+        """Unsigned mark field (B, 3, H, W) for textures (B, 3, H, W): the mask times the colour.
+        Without gradients the last few are kept (the same tensor, unmodified): detection asks for
+        the original's mask once per picture."""
+        if torch.is_grad_enabled():
+            return activity_mask(texture, self.window, self.floor) * self.colour.to(texture)[None, :, None, None]
+        for kept, version, field in self._amplitudes:  # kept alive here, so its memory is not reused
+            if (kept.data_ptr(), kept.shape, kept.stride(), kept.dtype, version) == (
+                    texture.data_ptr(), texture.shape, texture.stride(), texture.dtype, texture._version):
+                return field
+        field = activity_mask(texture, self.window, self.floor) * self.colour.to(texture)[None, :, None, None]
+        self._amplitudes = [(texture, texture._version, field)] + self._amplitudes[:3]
+        return field
 
     def cells(self, message: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
         """Bits (B, N) in {0, 1} -> signed cell values (B, 1, C, C)."""
@@ -178,7 +189,11 @@ def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: in
     assign = assign.to(sums.device)
     order = torch.argsort(assign, stable=True)
     counts = torch.bincount(assign, minlength=encoder.n_bits)
-    slot = torch.arange(len(assign), device=sums.device) - (torch.cumsum(counts, 0) - counts)[assign[order]]
-    weights = sums.new_zeros(len(sums), encoder.n_bits, int(counts.max()))
-    weights[:, assign[order], slot] = sums[:, order].abs()
+    grouped = sums.index_select(1, order).abs()
+    if bool((counts == counts[0]).all()):  # every bit the same number of cells: a reshape
+        weights = grouped.reshape(len(sums), encoder.n_bits, int(counts[0]))
+    else:
+        slot = torch.arange(len(assign), device=sums.device) - (torch.cumsum(counts, 0) - counts)[assign[order]]
+        weights = sums.new_zeros(len(sums), encoder.n_bits, int(counts.max()))
+        weights[:, assign[order], slot] = grouped
     return weights / weights.pow(2).sum(-1, keepdim=True).sqrt().clamp_min(1e-30)
