@@ -247,3 +247,18 @@ def test_bit_weights_give_each_picture_its_own_exact_null_over_keys():
         gaussian.append(payload.detection_pvalue(z))
     assert stats.kstest(exact, "uniform").pvalue > 0.01
     assert stats.kstest(gaussian, "uniform").pvalue < 0.01
+
+
+def test_the_mark_mask_is_kept_only_while_the_texture_is_unchanged():
+    from meshseal.models.spread import activity_mask
+
+    encoder = WatermarkModel(SPREAD).texture_encoder
+    texture = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        first = encoder.amplitude(texture)
+        assert encoder.amplitude(texture) is first  # detection asks once per picture
+        texture[:, :, :32] = 0.5  # changed in place: recomputed
+        second = encoder.amplitude(texture)
+        expected = activity_mask(texture, encoder.window, encoder.floor) * encoder.colour[None, :, None, None]
+        assert not torch.equal(first, second) and torch.equal(second, expected)
+    assert encoder.amplitude(texture) is not second  # with gradients (training): never kept
