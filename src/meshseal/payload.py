@@ -441,6 +441,8 @@ def _saddlepoint_tail(t: float, cgf, lower: float, upper: float, mean: float, va
 
 
 def _exact_square_sum_pvalue(t: float, weights: np.ndarray) -> float:
+    """P(T >= t) for T = sum_b z_b^2 given each bit's cell weights (N, M) (any scale; zero rows: bits
+    the picture does not show, z_b = 0)."""
     squares = np.asarray(weights, dtype=np.float64) ** 2
     energy = squares.sum(-1)
     squares = squares[energy > 0] / energy[energy > 0, None]
@@ -464,6 +466,7 @@ def _exact_square_sum_pvalue(t: float, weights: np.ndarray) -> float:
 
 
 def _exact_sum_pvalue(s: float, weights: np.ndarray) -> float:
+    """P(S >= s) for S = sum_i v_i s_i, v the weights (any shape), s_i fair random signs."""
     weights = np.abs(np.asarray(weights, dtype=np.float64)).ravel()
     weights = weights[weights > 0]
     if not len(weights):
