@@ -222,8 +222,7 @@ def test_untextured_materials_weigh_nothing():
 
 def test_bit_weights_give_each_picture_its_own_exact_null_over_keys():
     """One picture's cell evidence read under many keys: z_b is the bit's cells' sum with the key's signs
-    over their norm (what `bit_weights` holds), and the exact-null p-values over keys are uniform, while
-    the chi-square of the N(0, 1) model over-states them for evidence in few, uneven cells."""
+    over their norm (what `bit_weights` holds), and the exact-null p-values over keys are uniform."""
     from scipy import stats
 
     from meshseal import payload
@@ -232,9 +231,9 @@ def test_bit_weights_give_each_picture_its_own_exact_null_over_keys():
     encoder = WatermarkModel(SPREAD).texture_encoder
     generator = torch.Generator().manual_seed(0)
     sums = torch.zeros(1, encoder.chips ** 2, dtype=torch.float64)
-    seen = torch.randperm(encoder.chips ** 2, generator=generator)[:900]  # a small object: ~14 cells a bit
-    sums[0, seen] = torch.randn(900, generator=generator, dtype=torch.float64) ** 3  # heavy-tailed evidence
-    exact, gaussian = [], []
+    seen = torch.randperm(encoder.chips ** 2, generator=generator)[:3000]  # a small object: ~47 cells a bit
+    sums[0, seen] = torch.randn(3000, generator=generator, dtype=torch.float64) ** 3  # heavy-tailed evidence
+    exact = []
     for key in range(300):
         weights = bit_weights(encoder, sums, key)
         assign, _ = encoder.pattern(key)
@@ -244,9 +243,7 @@ def test_bit_weights_give_each_picture_its_own_exact_null_over_keys():
             assert torch.allclose(weights[0, bit].sort().values[-len(cells):], cells.sort().values / cells.norm())
         z = soft_bits(encoder, sums, key)[0]
         exact.append(payload.detection_pvalue(z, weights[0]))
-        gaussian.append(payload.detection_pvalue(z))
     assert stats.kstest(exact, "uniform").pvalue > 0.01
-    assert stats.kstest(gaussian, "uniform").pvalue < 0.01
 
 
 def test_the_mark_mask_is_kept_only_while_the_texture_is_unchanged():

@@ -336,6 +336,7 @@ def _half_rule(points: int) -> tuple[np.ndarray, np.ndarray]:
 # Bits whose evidence is spread over many cells are smooth in h: 16 points suffice (p within 1e-4 of
 # 48 points while no cell weighs more than 0.7). A bit seen by a few cells needs 48.
 _SMOOTH_RULE, _PEAKED_RULE, _PEAKED_WEIGHT = _half_rule(16), _half_rule(48), 0.6
+FEW_CELLS = 8
 
 
 def _log_cosh_root(y: np.ndarray, positive: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -365,15 +366,16 @@ def _log_cosh_root(y: np.ndarray, positive: bool) -> tuple[np.ndarray, np.ndarra
     return log_abs, negative, first, second
 
 
-def _square_sum_cgf(lam: float, groups) -> tuple[float, float, float]:
-    """K, K', K'' at lam < 1/2 of T = sum_b z_b^2, z_b = sum_i w_bi s_i. Each of `groups` is (node
+def _square_sum_cgf(lam: float, n: int, groups) -> tuple[float, float, float]:
+    """K, K', K'' at lam < 1/2 of T = sum_b z_b^2 over n bits, z_b = sum_i w_bi s_i; bits in none of
+    `groups` count as chi-square(1) (`_exact_square_sum_pvalue`'s few-cell bits). Each of `groups` is (node
     weights (Q,), scaled (Q, P): h_q^2 w_i^2 for the nodes h_q and every cell i with weight, the cells of
     a bit contiguous from `starts`); each bit's w^2 sum to 1. Gaussian trick: E exp(lam z^2) =
     E_g prod_i cosh(sqrt(2 lam) g w_i); with g = h / sqrt(1 - 2 lam) it is (1 - 2 lam)^-1/2
     E_h exp(sum_i psi(h^2 w_i^2 u)), u = 2 lam / (1 - 2 lam)."""
     u = 2.0 * lam / (1.0 - 2.0 * lam)
     du, ddu = 2.0 / (1.0 - 2.0 * lam) ** 2, 8.0 / (1.0 - 2.0 * lam) ** 3
-    n, log_total, l1_sum, l2_sum = 0, 0.0, 0.0, 0.0
+    log_total, l1_sum, l2_sum = 0.0, 0.0, 0.0
     for node_weights, scaled, starts in groups:
         log_abs, negative, first, second = _log_cosh_root(scaled * u, u >= 0)
         bits = lambda values: np.add.reduceat(values, starts, axis=1)  # noqa: E731  (Q, bits)
@@ -385,7 +387,7 @@ def _square_sum_cgf(lam: float, groups) -> tuple[float, float, float]:
         f = node_weights[:, None] * sign * np.exp(log_f - top)
         total = f.sum(0)
         l1 = (f * a).sum(0) / total
-        n, log_total = n + len(starts), log_total + float((np.log(total) + top).sum())
+        log_total += float((np.log(total) + top).sum())
         l1_sum += float(l1.sum())
         l2_sum += float(((f * (a * a + b)).sum(0) / total - l1 * l1).sum())
     k = -0.5 * n * math.log1p(-2.0 * lam) + log_total
@@ -434,34 +436,39 @@ def _saddlepoint_tail(t: float, cgf, lower: float, upper: float, mean: float, va
     if abs(w_hat) < 1e-2:
         return float(special.ndtr(-(t - mean) / math.sqrt(variance)))
     u_hat = lam * math.sqrt(k2)
+    chernoff = math.exp(-0.5 * w_hat ** 2)  # exp(K - lam t): P(X >= t) <= this above the mean, P(X < t) below
     if w_hat < 5.0:
-        return float(special.ndtr(-w_hat) + math.exp(-0.5 * w_hat ** 2) / math.sqrt(2 * math.pi) * (1 / u_hat - 1 / w_hat))
-    mills = math.sqrt(math.pi / 2) * special.erfcx(w_hat / math.sqrt(2))  # P(N > w) / phi(w)
-    return math.exp(-0.5 * w_hat ** 2 - 0.5 * math.log(2 * math.pi)) * max(mills + 1 / u_hat - 1 / w_hat, 0.0)
+        p = float(special.ndtr(-w_hat) + math.exp(-0.5 * w_hat ** 2) / math.sqrt(2 * math.pi) * (1 / u_hat - 1 / w_hat))
+    else:
+        mills = math.sqrt(math.pi / 2) * special.erfcx(w_hat / math.sqrt(2))  # P(N > w) / phi(w)
+        p = math.exp(-0.5 * w_hat ** 2 - 0.5 * math.log(2 * math.pi)) * (mills + 1 / u_hat - 1 / w_hat)
+    # The approximation can leave [0, 1] where X is nearly discrete; the Chernoff bounds always hold.
+    return min(max(p, 0.0), chernoff) if lam > 0 else max(min(p, 1.0), 1.0 - chernoff)
 
 
 def _exact_square_sum_pvalue(t: float, weights: np.ndarray) -> float:
     """P(T >= t) for T = sum_b z_b^2 given each bit's cell weights (N, M) (any scale; zero rows: bits
-    the picture does not show, z_b = 0)."""
+    the picture does not show, z_b = 0). A bit with fewer than FEW_CELLS effective cells (1 / sum w^4)
+    takes part as chi-square(1): its z^2 is nearly discrete (one cell: z^2 = 1), where a saddlepoint
+    misleads, and chi-square(1) has the larger moment generating function, hence the safer tail."""
     squares = np.asarray(weights, dtype=np.float64) ** 2
     energy = squares.sum(-1)
     squares = squares[energy > 0] / energy[energy > 0, None]
     if not len(squares):
         return 1.0
     n = len(squares)
-    variance = 2.0 * n - 2.0 * float((squares ** 2).sum())
-    if variance <= 1e-12:  # every bit one cell: T = n exactly
-        return 1.0 if t <= n + 1e-9 else float(np.finfo(float).tiny)
+    smooth = (squares ** 2).sum(-1) < 1.0 / FEW_CELLS
+    variance = 2.0 * n - 2.0 * float((squares[smooth] ** 2).sum())
     groups = []
     peaked = squares.max(-1) > _PEAKED_WEIGHT ** 2
-    for (nodes, node_weights), chosen in ((_SMOOTH_RULE, ~peaked), (_PEAKED_RULE, peaked)):
+    for (nodes, node_weights), chosen in ((_SMOOTH_RULE, smooth & ~peaked), (_PEAKED_RULE, smooth & peaked)):
         if chosen.any():
             rows = squares[chosen]
             counts = (rows > 0).sum(-1)
             scaled = nodes[:, None] ** 2 * rows[rows > 0][None]  # row-major: each bit's cells contiguous
             groups.append((node_weights, scaled, np.concatenate([[0], np.cumsum(counts)[:-1]])))
     chi_square = (1.0 - n / max(t, 1e-3)) / 2.0  # the saddlepoint if T were chi-square(n)
-    return _saddlepoint_tail(t, lambda lam: _square_sum_cgf(lam, groups), -20.0, 0.45, float(n), variance,
+    return _saddlepoint_tail(t, lambda lam: _square_sum_cgf(lam, n, groups), -20.0, 0.45, float(n), variance,
                              chi_square)
 
 
