@@ -333,9 +333,9 @@ def _half_rule(points: int) -> tuple[np.ndarray, np.ndarray]:
     return nodes[keep], 2.0 * weights[keep] / math.sqrt(2.0 * math.pi)
 
 
-# Bits whose evidence is spread over many cells are smooth in h: 16 points suffice (p within 1e-4 of
-# 48 points while no cell weighs more than 0.7). A bit seen by a few cells needs 48.
-_SMOOTH_RULE, _PEAKED_RULE, _PEAKED_WEIGHT = _half_rule(16), _half_rule(48), 0.6
+# Bits of FEW_CELLS effective cells or more (so no cell weighs over 8^-1/4 = 0.59) are smooth in h:
+# 16 points give p within 1e-4 of 48 points while no cell weighs more than 0.7.
+_RULE = _half_rule(16)
 FEW_CELLS = 8
 
 
@@ -460,13 +460,12 @@ def _exact_square_sum_pvalue(t: float, weights: np.ndarray) -> float:
     smooth = (squares ** 2).sum(-1) < 1.0 / FEW_CELLS
     variance = 2.0 * n - 2.0 * float((squares[smooth] ** 2).sum())
     groups = []
-    peaked = squares.max(-1) > _PEAKED_WEIGHT ** 2
-    for (nodes, node_weights), chosen in ((_SMOOTH_RULE, smooth & ~peaked), (_PEAKED_RULE, smooth & peaked)):
-        if chosen.any():
-            rows = squares[chosen]
-            counts = (rows > 0).sum(-1)
-            scaled = nodes[:, None] ** 2 * rows[rows > 0][None]  # row-major: each bit's cells contiguous
-            groups.append((node_weights, scaled, np.concatenate([[0], np.cumsum(counts)[:-1]])))
+    if smooth.any():
+        nodes, node_weights = _RULE
+        rows = squares[smooth]
+        counts = (rows > 0).sum(-1)
+        scaled = nodes[:, None] ** 2 * rows[rows > 0][None]  # row-major: each bit's cells contiguous
+        groups.append((node_weights, scaled, np.concatenate([[0], np.cumsum(counts)[:-1]])))
     chi_square = (1.0 - n / max(t, 1e-3)) / 2.0  # the saddlepoint if T were chi-square(n)
     return _saddlepoint_tail(t, lambda lam: _square_sum_cgf(lam, n, groups), -20.0, 0.45, float(n), variance,
                              chi_square)
