@@ -59,6 +59,19 @@ def test_pooling_decides_once_and_bad_pictures_do_not_stop_the_batch(pictures, c
     assert "error" in results[0] and results[1]["message"] == "ab42"
 
 
+def test_worker_processes_read_as_one_process_does(pictures, capsys):
+    """--workers 2: spawned processes read the pictures; the lines, their order, the errors and the
+    pooled decision are those of one process."""
+    pictures_named = [pictures / "missing.png", pictures / "views", pictures / "clean.png", "--key", "s3cret"]
+    alone = _detect(capsys, *pictures_named, "--workers", "1")
+    together = _detect(capsys, *pictures_named, "--workers", "2")
+    assert alone[0] == together[0] == 2 and alone[1] == together[1] and len(alone[1]) == 4
+    assert together[2].count("meshseal: error:") == 1 and "missing.png" in together[2]
+    assert [r.get("message") for r in together[1]] == [None, "ab42", "ab42", None]
+    pooled = _detect(capsys, pictures / "views", "--key", "s3cret", "--pool", "--workers", "2")
+    assert pooled[1] == _detect(capsys, pictures / "views", "--key", "s3cret", "--pool")[1]
+
+
 def test_payload_limits_and_models_listing(pictures, tmp_path, capsys):
     for argv in (["--message", "too long"], ["--id", str(2 ** 32)], ["--message", "ab", "--key", ""]):
         capsys.readouterr()

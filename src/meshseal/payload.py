@@ -43,10 +43,12 @@ HEADER_BITS = 4
 
 @dataclass(frozen=True)
 class _Schema:
-    """BCH(2^m - 1, k) over GF(2^m) built on `primitive_poly`, extended by one parity bit."""
+    """BCH(2^m - 1, k) over GF(2^m) built on `primitive_poly`, extended by one parity bit; `d` is its
+    designed distance (galois builds the code from it in one step instead of searching for k)."""
 
     m: int
     k: int
+    d: int
     primitive_poly: str
 
     @property
@@ -54,7 +56,7 @@ class _Schema:
         return self.k - HEADER_BITS
 
 
-SCHEMAS = {64: _Schema(6, 36, "x^6 + x + 1"), 32: _Schema(5, 16, "x^5 + x^2 + 1")}
+SCHEMAS = {64: _Schema(6, 36, 11, "x^6 + x + 1"), 32: _Schema(5, 16, 7, "x^5 + x^2 + 1")}
 
 
 def _schema(n_bits: int) -> _Schema:
@@ -77,7 +79,10 @@ def _code(n_bits: int):
     # GF(2) first, in pure Python: built by default, it JIT-compiles a polynomial evaluation (1 s).
     galois.GF(2, compile="python-calculate")
     field = galois.GF(2 ** schema.m, irreducible_poly=schema.primitive_poly, compile="python-calculate", verify=False)
-    return galois.BCH(2 ** schema.m - 1, schema.k, extension_field=field)
+    code = galois.BCH(2 ** schema.m - 1, d=schema.d, extension_field=field)
+    if code.k != schema.k:  # pragma: no cover - the schema table is wrong
+        raise MeshsealError(f"BCH(2^{schema.m} - 1, d={schema.d}) has k = {code.k}, the schema says {schema.k}")
+    return code
 
 
 @dataclass(frozen=True)
@@ -467,8 +472,51 @@ def _exact_square_sum_pvalue(t: float, weights: np.ndarray) -> float:
         scaled = nodes[:, None] ** 2 * rows[rows > 0][None]  # row-major: each bit's cells contiguous
         groups.append((node_weights, scaled, np.concatenate([[0], np.cumsum(counts)[:-1]])))
     chi_square = (1.0 - n / max(t, 1e-3)) / 2.0  # the saddlepoint if T were chi-square(n)
-    return _saddlepoint_tail(t, lambda lam: _square_sum_cgf(lam, n, groups), -20.0, 0.45, float(n), variance,
-                             chi_square)
+    p = _saddlepoint_tail(t, lambda lam: _square_sum_cgf(lam, n, groups), -20.0, 0.45, float(n), variance,
+                          chi_square)
+    if smooth.all() or p <= FPR * 1e-3:  # no few-cell bit, or far past the threshold: nothing to gain
+        return p
+    return min(p, _chernoff_square_sum(t, squares))
+
+
+ENUMERATED_CELLS = 10
+
+
+def _chernoff_square_sum(t: float, squares: np.ndarray) -> float:
+    """An upper bound on P(T >= t), T = sum_b z_b^2, for bits whose evidence sits on a few cells, where
+    chi-square(1) (`_exact_square_sum_pvalue`) gives away most of what the picture shows: a bit seen
+    by two equal cells has z^2 = 0 or 2, so 64 such bits all read right (T = 128) happen with
+    probability 2^-64 without a mark, where chi-square(64) says 1e-6.
+
+    Chernoff: P(T >= t) <= exp(K(lam) - lam t) for every lam > 0, with K a bound on T's cumulant
+    generating function that holds exactly: each bit's ENUMERATED_CELLS heaviest cells give
+    A = sum w_i s_i over all their sign patterns, the remaining cells B a sub-Gaussian sum
+    (E exp(a B) <= exp(a^2 r / 2), r their sum of w^2), and by the Gaussian trick
+    E exp(lam (A + B)^2) <= (1 - 2 lam r)^-1/2 E_A exp(lam A^2 / (1 - 2 lam r)). squares (N, M): w^2
+    per bit, each row summing to 1."""
+    cells = min(ENUMERATED_CELLS, squares.shape[-1])
+    weights = np.sqrt(-np.sort(-np.partition(squares, squares.shape[-1] - cells, axis=-1)[:, -cells:], axis=-1))
+    rest = np.clip(1.0 - (weights ** 2).sum(-1), 0.0, None)  # (N,)
+    patterns = 1.0 - 2.0 * ((np.arange(2 ** (cells - 1))[:, None] >> np.arange(cells - 1)) & 1)  # the first cell +
+    a_squared = ((weights[:, :1] + weights[:, 1:] @ patterns.T) ** 2)[:, None, :]  # (N, 1, patterns)
+    top = 0.5 / rest.max() if rest.max() > 0 else math.inf
+
+    def bound(lam: np.ndarray) -> np.ndarray:  # log of the bound at each lam (L,)
+        shrink = 1.0 - 2.0 * lam[None, :] * rest[:, None]  # (N, L)
+        exponent = lam[None, :, None] * a_squared / shrink[..., None]
+        peak = exponent.max(-1)
+        log_mean = peak + np.log(np.exp(exponent - peak[..., None]).mean(-1))
+        return (log_mean - 0.5 * np.log(shrink)).sum(0) - lam * t
+
+    grid = np.geomspace(1e-3, min(top * (1.0 - 1e-6), 60.0), 32)
+    values = bound(grid)
+    best = int(values.argmin())
+    low, high = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
+    for _ in range(16):  # golden section around the best grid point: any lam found is a valid bound
+        inner = np.array([high - 0.618 * (high - low), low + 0.618 * (high - low)])
+        left, right = bound(inner)
+        low, high = (low, inner[1]) if left < right else (inner[0], high)
+    return float(min(1.0, math.exp(min(values.min(), float(bound(np.array([0.5 * (low + high)]))[0])))))
 
 
 def _exact_sum_pvalue(s: float, weights: np.ndarray) -> float:

@@ -211,7 +211,8 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     the pixels every candidate covers. The pixel's area is the mean of a rasterization `supersampling`
     times finer, shaded and summed per pixel without forming the finer image. The choice looks at
     the picture and the original only, never at a key, so the matched filter's null stays the same."""
-    from .models.spread import local_mean
+    from .distortions import blur_radius
+    from .models.spread import local_mean, within_reach
     from .render import rasterize
 
     scale = supersampling(height, width)
@@ -226,10 +227,14 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     column = within - row * width * scale
     parent = fine.batch * height * width + torch.div(row, scale, rounding_mode="floor") * width + column // scale
     sums = lit.new_zeros(n_images * height * width, 4).index_add_(0, parent, F.pad(lit, (0, 1), value=1.0)) / scale ** 2
-    pick = lambda image: pixels_at(image, found.fragments).index_select(0, found.keep)  # noqa: E731
-    usable = sums[:, 3].index_select(0, found.fragments.pixel.index_select(0, found.keep)) > 0.999
+    kept = found.fragments.pixel.index_select(0, found.keep)
+    usable = sums[:, 3].index_select(0, kept) > 0.999
     widths = ((0.0,) if scale > 1 else ()) + tuple(sigmas)
-    averaged = sums[:, :3].reshape(n_images, height, width, 3).permute(0, 3, 1, 2)  # blurred at this resolution
+    # Blurred at the picture's resolution, over the window the kept pixels and the widest blur reach.
+    local, (_, rows, columns), (top, left) = within_reach(kept, (n_images, height, width), blur_radius(max(widths)))
+    averaged = sums[:, :3].reshape(n_images, height, width, 3)[:, top: top + rows, left: left + columns]
+    averaged = averaged.permute(0, 3, 1, 2)
+    pick = lambda image: image.permute(0, 2, 3, 1).reshape(-1, 3).index_select(0, local)  # noqa: E731
     candidates = [found.expected] + [pick(gaussian_blur(averaged, s)) for s in widths]
     pixel = found.fragments.pixel.index_select(0, found.keep)[usable]
     image = found.image_index[usable]

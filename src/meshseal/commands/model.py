@@ -51,6 +51,9 @@ def register(subparsers) -> None:
                         help="decide once for all the pictures (views of one asset), adding their evidence")
     detect.add_argument("--json", "--jsonl", dest="json", action="store_true",
                         help="one JSON object per picture (or per pool), one per line")
+    detect.add_argument("--workers", type=positive_int(64), default=None,
+                        help="processes reading pictures at once (default: one per core, at most 8, for "
+                             f"{MANY_PICTURES} pictures or more; else 1)")
     detect.set_defaults(func=run_detect)
 
     evaluate = subparsers.add_parser("eval", help="measure a model on a dataset split")
@@ -254,6 +257,7 @@ def run_embed(args) -> int:
 
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff", ".gif"}
+MANY_PICTURES = 64  # from here on the default reads with one worker per core: each costs seconds to start
 
 
 def picture_paths(paths: list[Path]) -> list[Path]:
@@ -311,31 +315,107 @@ def run_detect(args) -> int:
         from tqdm import tqdm
 
         progress = tqdm(total=len(pictures), unit="picture", file=sys.stderr)
-    for path in pictures:
-        try:
-            reading = watermarker.read(path, original, register=args.register, fov_y=args.fov)
-        except MeshsealError as error:
-            (progress.write if progress else lambda line: print(line, file=sys.stderr))(f"meshseal: error: {error}")
-            if args.json:
-                print(json.dumps({"image": str(path), "error": str(error)}), flush=True)
-            failed += 1
-            reading = None
-        if progress is not None:
-            progress.update()
-        if reading is None:
-            continue
-        if args.pool:
-            readings.append(reading)
-            continue
-        result = watermarker.decide([reading], key, expect)
-        line = json.dumps({"image": str(path)} | result.to_dict()) if args.json else f"{path}: {_describe(result, expect)}"
-        (progress.write if progress and not args.json else print)(line)
+    workers = args.workers or (min(_cores(), 8) if len(pictures) >= MANY_PICTURES else 1)
+    with _reader(args, watermarker, original, min(workers, len(pictures))) as read:
+        for path, reading, error in read(pictures):
+            failed += _report(args, watermarker, path, reading, error, progress, key, expect, readings)
     if progress is not None:
         progress.close()
     if args.pool and readings:
         result = watermarker.decide(readings, key, expect)
         print(json.dumps(result.to_dict()) if args.json else f"{len(readings)} pictures pooled: {_describe(result, expect)}")
     return 2 if failed else 0
+
+
+def _report(args, watermarker, path, reading, error, progress, key, expect, readings) -> int:
+    """Print one picture's line (or keep its reading for the pool); 1 if it could not be read."""
+    if error is not None:
+        (progress.write if progress else lambda line: print(line, file=sys.stderr))(f"meshseal: error: {error}")
+        if args.json:
+            print(json.dumps({"image": str(path), "error": str(error)}), flush=True)
+    if progress is not None:
+        progress.update()
+    if error is not None:
+        return 1
+    if args.pool:
+        readings.append(reading)
+        return 0
+    result = watermarker.decide([reading], key, expect)
+    line = json.dumps({"image": str(path)} | result.to_dict()) if args.json else f"{path}: {_describe(result, expect)}"
+    if progress is not None and not args.json:
+        progress.write(line)
+    else:
+        print(line, flush=True)
+    return 0
+
+
+def _cores() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+class _reader:
+    """`with _reader(args, watermarker, original, workers) as read: for path, reading, error in
+    read(paths)`: the pictures' readings in order, an unreadable picture's error as text. With more
+    than one worker, spawned processes (one torch thread each) load the model and the original once
+    and read the pictures in parallel; the decisions stay in this process."""
+
+    def __init__(self, args, watermarker, original, workers: int):
+        self.options = (args.register, args.fov)
+        self.watermarker, self.original, self.workers, self.pool = watermarker, original, workers, None
+        self.source = (args.model, None if original is None else str(args.mesh))
+
+    def __enter__(self):
+        if self.workers > 1:
+            import multiprocessing
+            import os
+
+            # Spawned, not forked: a fork after torch or numba started their threads can deadlock. One
+            # thread per worker, set before the children import anything: thread pools of several
+            # processes spinning against each other on the same cores cost many times the work.
+            saved = dict(os.environ)
+            os.environ.update({name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
+            try:
+                self.pool = multiprocessing.get_context("spawn").Pool(self.workers, _worker_start, self.source)
+            finally:
+                os.environ.clear()
+                os.environ.update(saved)
+        return self._read
+
+    def __exit__(self, *exc_info):
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
+
+    def _read(self, paths):
+        if self.pool is None:
+            return (_read_one(self.watermarker, self.original, path, *self.options) for path in paths)
+        return self.pool.imap(_worker_read, [(path, *self.options) for path in paths])
+
+
+def _read_one(watermarker, original, path, register: bool, fov: float):
+    try:
+        return path, watermarker.read(path, original, register=register, fov_y=fov), None
+    except MeshsealError as error:
+        return path, None, str(error)
+
+
+_WORKER: dict = {}
+
+
+def _worker_start(model, mesh) -> None:
+    import torch
+
+    from ..api import load
+
+    torch.set_num_threads(1)
+    watermarker = load(model)
+    _WORKER.update(watermarker=watermarker, original=None if mesh is None else watermarker.original(mesh))
+
+
+def _worker_read(task):
+    return _read_one(_WORKER["watermarker"], _WORKER["original"], *task)
 
 
 def run_eval(args) -> int:

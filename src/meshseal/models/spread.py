@@ -116,15 +116,33 @@ class SpreadSpectrumEncoder(nn.Module):
 def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float) -> torch.Tensor:
     """Gaussian mean (sigma px) of values (P,) or (P, C) at covered pixels, over the covered pixels
     only (the background does not bleed in). pixel (P,): flat indices into the (B, H, W) `shape`."""
-    from ..distortions import gaussian_blur
+    from ..distortions import blur_radius, gaussian_blur
 
     flat = values[:, None] if values.dim() == 1 else values
     channels = flat.shape[1]
+    pixel, shape, _ = within_reach(pixel, shape, blur_radius(sigma))
     planes = values.new_zeros(channels + 1, shape[0] * shape[1] * shape[2])
     planes[:channels, pixel], planes[channels, pixel] = flat.T, 1.0
     blurred = gaussian_blur(planes.reshape(channels + 1, shape[0], shape[1], shape[2]).transpose(0, 1), sigma)
     blurred = blurred.transpose(0, 1).reshape(channels + 1, -1)[:, pixel]
     return (blurred[:channels] / blurred[channels:].clamp_min(1e-6)).T.reshape(values.shape)
+
+
+def within_reach(pixel: torch.Tensor, shape: tuple[int, int, int], reach: int):
+    """The window of the (B, H, W) pictures that holds every pixel (P,) plus `reach` pixels around them
+    (clipped to the picture): (the pixels' flat indices into it, its (B, h, w) shape, its (top, left)
+    corner). A blur that reaches no further gives the same values at the pixels over the window as
+    over the whole picture, for less."""
+    if len(pixel) == 0:
+        return pixel, shape, (0, 0)
+    n_images, height, width = shape
+    within = pixel % (height * width)
+    row, column = torch.div(within, width, rounding_mode="floor"), within % width
+    top, left = max(int(row.min()) - reach, 0), max(int(column.min()) - reach, 0)
+    bottom, right = min(int(row.max()) + reach + 1, height), min(int(column.max()) + reach + 1, width)
+    image = torch.div(pixel, height * width, rounding_mode="floor")
+    rows, columns = bottom - top, right - left
+    return (image * rows + row - top) * columns + column - left, (n_images, rows, columns), (top, left)
 
 
 def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], highpass: float | None = 1.5,

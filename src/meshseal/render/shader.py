@@ -26,8 +26,8 @@ class PhongShader:
                  specular: torch.Tensor, shininess: torch.Tensor) -> torch.Tensor:
         """Per-fragment inputs (P, 3) (lights (P, L, 3), shininess (P,)) -> colours (P, 3), unclamped."""
         normal = F.normalize(normal, dim=-1, eps=1e-12)
-        view = F.normalize(eye - position, dim=-1, eps=1e-12)
-        facing = torch.where((normal * view).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(normal.dtype)
+        to_eye = eye - position  # its length does not change which side faces the camera
+        facing = torch.where((normal * to_eye).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(normal.dtype)
         normal = normal * facing
         color = self.k_ambient * ambient * albedo
         to_light = light_position - position.unsqueeze(1)  # (P, L, 3)
@@ -37,6 +37,7 @@ class PhongShader:
         scale = light_intensity / attenuation(distance)
         color = color + (scale * self.k_diffuse * n_dot_l.clamp_min(0.0)).sum(1) * albedo
         if self.k_specular != 0.0:
+            view = F.normalize(to_eye, dim=-1, eps=1e-12)
             reflected = 2.0 * n_dot_l * normal.unsqueeze(1) - direction
             r_dot_v = (reflected * view.unsqueeze(1)).sum(-1, keepdim=True).clamp_min(0.0)
             highlight = r_dot_v ** shininess.reshape(-1, 1, 1)
