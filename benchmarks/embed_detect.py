@@ -8,14 +8,17 @@ second, one process), then the command line itself: the wall time of `meshseal d
 MESH` and of `meshseal embed MESH --views 0` in a fresh process (start-up included: what a user waits
 for the first result), and `meshseal detect FOLDER --mesh MESH --jsonl` on a folder of 64 saved 256^2
 pictures of the marked bunny with its default workers (one process per core): the rate at which its
-lines arrive between the first and the last (`folder_pictures_per_s`). References in the same run: a
+lines arrive between the first and the last (`folder_pictures_per_s`), and the same command with
+`--register` on 16 of them, one worker per core (`folder_registered_ms`: the time between lines, i.e.
+a registered picture's cost when a folder is checked; `detect_registered_256_ms` is one picture's
+latency in one process). References in the same run: a
 plain 512x512 bilinear resize + 3x3 blur in torch (what any image tool does to the texture), so the
 ratio says how far from free we are on this machine, and the wall time of a fresh `python -c "import
 torch, trimesh, numba"` (`import_floor_s`: the libraries' own start-up, which no command can undercut).
 
 LAST line: embed_5k_512_ms=<float> detect_256_ms=<float> detect_registered_256_ms=<float>
 pictures_per_s=<float> cli_detect_s=<float> cli_embed_s=<float> folder_pictures_per_s=<float>
-import_floor_s=<float>
+import_floor_s=<float> folder_registered_ms=<float>
 """
 
 from __future__ import annotations
@@ -67,10 +70,16 @@ def batch_rate(watermarker, original, image, count: int = 20) -> float:
     return count / (time.perf_counter() - start)
 
 
-def command_line_times(image) -> tuple[float, float, float, float]:
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def command_line_times(image) -> tuple[float, float, float, float, float, float]:
     """Wall seconds of `meshseal detect` on one saved picture of the bunny fixture and of `meshseal embed
     --views 0` on it, each in a fresh process (median of 3); the folder rate (pictures per second
-    between the first and the last line of `meshseal detect FOLDER --jsonl`); the import floor."""
+    between the first and the last line of `meshseal detect FOLDER --jsonl`); the import floor; the
+    milliseconds between lines of `meshseal detect FOLDER --register` (16 pictures, one worker per
+    core) and the share of those read right."""
     import json
     import shutil
     import subprocess
@@ -105,23 +114,36 @@ def command_line_times(image) -> tuple[float, float, float, float]:
             shutil.copy(pictures / f"v_{index % 4}.png", pictures / f"copy_{index:02d}.png")
         for index in range(4):
             (pictures / f"v_{index}.png").unlink()
-        start = time.perf_counter()
-        run = subprocess.Popen(command + ["detect", str(pictures), "--mesh", str(bunny), "--jsonl"],
-                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        lines, arrivals = [], []
-        for line in run.stdout:
-            arrivals.append(time.perf_counter() - start)
-            lines.append(json.loads(line))
-        if run.wait() != 0 or len(lines) != 64 or not all(r["detected"] and r["message"] == "ab42" for r in lines):
-            raise SystemExit(f"meshseal detect FOLDER failed (exit {run.returncode}, {len(lines)} lines, "
-                             f"{sum(bool(r.get('detected')) for r in lines)} detected)")
-        folder_rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0])
+
+        def rate(arguments: list[str], count: int) -> tuple[float, float]:
+            """Lines per second between the first and the last of `meshseal detect ARGUMENTS --jsonl`, and
+            the share of its `count` pictures detected with the right message."""
+            start = time.perf_counter()
+            run = subprocess.Popen(command + ["detect", *arguments, "--mesh", str(bunny), "--jsonl"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            lines, arrivals = [], []
+            for line in run.stdout:
+                arrivals.append(time.perf_counter() - start)
+                lines.append(json.loads(line))
+            if run.wait() != 0 or len(lines) != count:
+                raise SystemExit(f"meshseal detect {' '.join(arguments)} failed (exit {run.returncode}, {len(lines)} lines)")
+            right = sum(bool(r["detected"]) and r["message"] == "ab42" for r in lines) / count
+            return (count - 1) / (arrivals[-1] - arrivals[0]), right
+
+        folder_rate, right = rate([str(pictures)], 64)
+        if right < 1.0:
+            raise SystemExit(f"meshseal detect FOLDER read only {right:.2f} of its pictures right")
+        registered = Path(folder) / "registered"
+        registered.mkdir()
+        for index in range(16):
+            shutil.copy(pictures / f"copy_{index:02d}.png", registered / f"copy_{index:02d}.png")
+        registered_rate, registered_right = rate([str(registered), "--register", "--workers", str(_cores())], 16)
     floor = []
     for _ in range(3):
         start = time.perf_counter()
         subprocess.run([sys.executable, "-c", "import torch, trimesh, numba"], check=True)
         floor.append(time.perf_counter() - start)
-    return detect_s, embed_s, folder_rate, statistics.median(floor)
+    return detect_s, embed_s, folder_rate, statistics.median(floor), 1000.0 / registered_rate, registered_right
 
 
 def main() -> None:
@@ -164,7 +186,7 @@ def main() -> None:
     accuracy = sum(a == b for a, b in zip(result.bits, bits)) / len(bits)
     per_second = batch_rate(watermarker, original if watermarker.informed else None, image if watermarker.informed
                             else picture)
-    cli_detect_s, cli_embed_s, folder_rate, import_floor_s = command_line_times(
+    cli_detect_s, cli_embed_s, folder_rate, import_floor_s, folder_registered_ms, registered_right = command_line_times(
         image if watermarker.informed else Image.fromarray(picture))
     print(f"model: {watermarker.name} ({watermarker.n_bits} bits)")
     print(f"embed 5k faces + 512^2 texture: {embed_ms:.1f} ms  (goal < 300)")
@@ -175,12 +197,14 @@ def main() -> None:
     print(f"command line, fresh process: detect one picture {cli_detect_s:.2f} s, embed --views 0 {cli_embed_s:.2f} s "
           f"(goal <= 1.5 s to the first result); import torch, trimesh, numba alone: {import_floor_s:.2f} s")
     print(f"meshseal detect FOLDER (64 pictures, default workers): {folder_rate:.1f} pictures/s  (goal >= 10)")
+    print(f"meshseal detect FOLDER --register (16 pictures, {_cores()} workers): one picture every "
+          f"{folder_registered_ms:.0f} ms, {registered_right:.2f} read right")
     print(f"reference resize+blur of the 512^2 texture: {reference_ms:.1f} ms; embed/reference = {embed_ms / reference_ms:.1f}x")
     print(f"load average at end: {os.getloadavg()}")
     print(f"embed_5k_512_ms={embed_ms:.2f} detect_256_ms={detect_ms:.2f} detect_registered_256_ms="
           f"{register_ms if register_ms is not None else float('nan'):.0f} pictures_per_s={per_second:.2f} "
           f"cli_detect_s={cli_detect_s:.2f} cli_embed_s={cli_embed_s:.2f} folder_pictures_per_s={folder_rate:.2f} "
-          f"import_floor_s={import_floor_s:.2f}")
+          f"import_floor_s={import_floor_s:.2f} folder_registered_ms={folder_registered_ms:.0f}")
 
 
 if __name__ == "__main__":

@@ -60,8 +60,11 @@ def _up_for(direction: torch.Tensor) -> torch.Tensor:
     return up
 
 
-def _iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def _iou(a: torch.Tensor, b: torch.Tensor, inside: torch.Tensor | None = None) -> torch.Tensor:
+    """Overlap of coverages a and b (..., H, W), over the pixels `inside` the picture if given."""
     a, b = a > 0.5, b > 0.5
+    if inside is not None:
+        a, b = a & (inside > 0.5), b & (inside > 0.5)
     return (a & b).sum(dim=(-2, -1)).float() / (a | b).sum(dim=(-2, -1)).clamp_min(1).float()
 
 
@@ -73,10 +76,13 @@ def crop_intrinsics(height: int, width: int, box, fov_y: float) -> tuple[float, 
     return math.degrees(2 * math.atan(tan)), ((width / 2 - cx) / half, (cy - height / 2) / half)
 
 
-def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 3) -> Cameras:
+def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 3, seen=None) -> Cameras:
     """Move each camera (without turning it) so the object's framed box fills its size x size picture.
     The box is that of the projected vertices (the silhouette's, without rendering); a few rounds
-    absorb the perspective."""
+    absorb the perspective. `seen` (low (2,), high (2,), cut (2, 2) bool: per axis x, y whether the
+    picture's edge cuts the object off at the low / high side), in this picture's pixels: the object
+    seen only in part. Its uncut sides are matched: the scale from an axis cut on neither side, the
+    position from the uncut side of each axis, so that the rest of the object lies past the edge."""
     from .framing import BOX_MARGIN
     from .render import clip_to_screen
 
@@ -86,32 +92,77 @@ def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 
         with torch.no_grad():
             xy = clip_to_screen(cameras.world_to_clip(used[None].expand(len(cameras), -1, -1), 1.0), size, size)
         low, high = xy.amin(1), xy.amax(1)
-        centre = (low + high) / 2
-        half = (high - low).amax(-1, keepdim=True) / 2 * (1 + 2 * BOX_MARGIN)
+        if seen is None:
+            centre = (low + high) / 2
+            half = (high - low).amax(-1, keepdim=True) / 2 * (1 + 2 * BOX_MARGIN)
+            target, grow = torch.full_like(centre, size / 2), (size / 2) / half
+        else:
+            target, grow = _seen_target(low, high, *seen)
+            centre = (low + high) / 2
         view = cameras.view_matrix()[:, :3, :3]  # rows: right, up, back
         distance = (cameras.at - cameras.eye).norm(dim=-1, keepdim=True)
-        dx = (size / 2 - centre[:, :1]) * distance / focal  # object right by dx px: camera left
-        dy = (size / 2 - centre[:, 1:]) * distance / focal  # object down (pixel rows): camera up
+        # Closer by `grow`, the object's offset from the middle grows by it; the rest is a sideways move
+        # (moving the camera right moves the object left).
+        moved = target - ((centre - size / 2) * grow + size / 2)
+        dx, dy = moved[:, :1] * distance / grow / focal, moved[:, 1:] * distance / grow / focal
         shift = -dx * view[:, 0] + dy * view[:, 1]
-        closer = (1.0 - half / (size / 2)) * distance * -view[:, 2]  # toward the object
+        closer = (1.0 - 1.0 / grow) * distance * -view[:, 2]  # toward the object
         cameras = replace(cameras, eye=cameras.eye + shift + closer, at=cameras.at + shift)
     return cameras
 
 
+def _seen_target(low: torch.Tensor, high: torch.Tensor, seen_low: torch.Tensor, seen_high: torch.Tensor,
+                 cut: torch.Tensor):
+    """For `_center_objects` with an object seen in part: where each projected box (B, 2) should be
+    centred (B, 2) once magnified by the returned factor (B, 1)."""
+    span, seen_span = (high - low).clamp_min(1e-6), seen_high - seen_low
+    whole = ~cut.any(-1)  # axes cut on neither side give the scale
+    ratios = seen_span / span  # (B, 2)
+    grow = (ratios * whole if bool(whole.any()) else ratios).amax(-1, keepdim=True)
+    half = span * grow / 2
+    centre = torch.where(~cut[:, 0], seen_low + half, torch.where(~cut[:, 1], seen_high - half,
+                                                                   (seen_low + seen_high) / 2))
+    return centre, grow
+
+
 def frame_picture(picture: torch.Tensor, mask: torch.Tensor, size: int, background: torch.Tensor):
-    """picture (3, H, W), mask (H, W) bool -> framed picture (1, 3, S, S), mask (1, S, S), box (1, 3)."""
+    """picture (3, H, W), mask (H, W) bool -> framed picture (1, 3, S, S), mask (1, S, S), box (1, 3),
+    inside (1, S, S): where the square crop lies within the picture. An object cut off by the frame
+    edge goes on beyond it, where the picture says nothing: the silhouette stages leave that out."""
     box = boxes_from_mask(mask[None].cpu())
     framed = crop_boxes(picture[None], box, size, background.reshape(1, 3).to(picture))
     framed_mask = crop_boxes(mask[None, None].to(picture.dtype), box, size)[:, 0]
-    return framed, framed_mask, box
+    inside = crop_boxes(torch.ones_like(picture[None, :1]), box, size)[:, 0]
+    return framed, framed_mask, box, inside
 
 
-def _targets(target: torch.Tensor, target_mask: torch.Tensor) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
-    """The framed picture (1, 3, S, S) and its mask (1, 1, S, S) at the two working sizes."""
+def _seen_part(mask: torch.Tensor, box: torch.Tensor, size: int):
+    """The object's box in the picture (H, W) mask, in the pixels of the size x size crop `box`, and
+    which of its sides the picture's edge cuts (`_center_objects`'s `seen`); None if none is cut."""
+    height, width = mask.shape
+    rows = torch.nonzero(mask.any(1)).squeeze(1)
+    columns = torch.nonzero(mask.any(0)).squeeze(1)
+    if not len(rows):
+        return None
+    left, right, top, bottom = float(columns[0]), float(columns[-1]) + 1, float(rows[0]), float(rows[-1]) + 1
+    cut = torch.tensor([[left <= 0, right >= width], [top <= 0, bottom >= height]])
+    if not bool(cut.any()):
+        return None
+    cx, cy, half = (float(v) for v in box)
+    to_crop = lambda x, c: (x - (c - half)) / (2 * half) * size  # noqa: E731
+    low = torch.tensor([[to_crop(left, cx), to_crop(top, cy)]])
+    high = torch.tensor([[to_crop(right, cx), to_crop(bottom, cy)]])
+    return low, high, cut[None]
+
+
+def _targets(target: torch.Tensor, target_mask: torch.Tensor, inside: torch.Tensor) -> dict[int, tuple]:
+    """The framed picture (1, 3, S, S), its mask (1, 1, S, S) and where it lies within the picture
+    (1, 1, S, S) at the two working sizes."""
     levels = {}
     for size in (COMPARE_SIZE, SEARCH_SIZE):
         levels[size] = (F.interpolate(target, size=size, mode="area"),
-                        F.interpolate(target_mask[:, None], size=size, mode="area"))
+                        F.interpolate(target_mask[:, None], size=size, mode="area"),
+                        F.interpolate(inside[:, None], size=size, mode="area"))
     return levels
 
 
@@ -137,16 +188,16 @@ def _overlaps(mesh: MeshBatch, cameras: Cameras, level) -> torch.Tensor:
     size = level[1].shape[-1]
     with torch.no_grad():
         cover = visible_faces(_clip(mesh, cameras, size, size), mesh.faces, size, size) >= 0
-        return _iou(cover, level[1][:, 0])
+        return _iou(cover, level[1][:, 0], level[2][:, 0])
 
 
 def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> torch.Tensor:
     """Silhouette IoU - weighted shading misfit (B,) of cameras against the picture."""
-    target, target_mask = level
+    target, target_mask, inside = level
     size = target_mask.shape[-1]
     with torch.no_grad():
         fragments, cover = _rasterized(mesh, cameras, size, size)
-        iou = _iou(cover, target_mask[:, 0])
+        iou = _iou(cover, target_mask[:, 0], inside[:, 0])
         return iou - shading_weight * _shading_misfit(mesh, fragments, cameras, target, target_mask)
 
 
@@ -258,17 +309,19 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
     keeps its pose and damps harder (Levenberg-Marquardt)."""
     from .distortions import gaussian_blur
 
-    _, target_mask = level
+    _, target_mask, inside = level
     size = target_mask.shape[-1]
     n_batch = len(start)
     blurred_target = gaussian_blur(target_mask, sigma).reshape(1, -1)
+    # Only pixels whose blur sees nothing beyond the picture's edge: past it the object may go on.
+    known = (gaussian_blur(inside, sigma) > 0.999).to(target_mask.dtype).reshape(1, -1)
     delta = torch.zeros(n_batch, 6)
     damping = torch.full((n_batch,), 1e-3)
 
     def evaluate(delta):
         cover, points = _pixel_points(mesh, _moved(start, delta, size), size)
         blurred = gaussian_blur(cover, sigma)
-        return blurred, points, ((blurred.reshape(n_batch, -1) - blurred_target) ** 2).sum(1)
+        return blurred, points, (known * (blurred.reshape(n_batch, -1) - blurred_target) ** 2).sum(1)
 
     with torch.no_grad():
         blurred, points, cost = evaluate(delta)
@@ -277,7 +330,8 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
             gradient_y, gradient_x = torch.gradient(blurred[:, 0], dim=(1, 2))
             jacobian = -(gradient_x.reshape(1, n_batch, -1) * flow[..., 0]
                          + gradient_y.reshape(1, n_batch, -1) * flow[..., 1]).permute(1, 2, 0)  # (B, S*S, 6)
-            residual = blurred.reshape(n_batch, -1) - blurred_target
+            jacobian = jacobian * known[..., None]
+            residual = (blurred.reshape(n_batch, -1) - blurred_target) * known
             normal = jacobian.transpose(1, 2) @ jacobian
             scale = normal.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-12)
             update = -torch.linalg.solve(normal + (damping * scale)[:, None, None] * torch.eye(6),
@@ -544,15 +598,16 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     """Find the camera of `picture` (3, H, W) in [0, 1] of `mesh` (one mesh in the canonical frame);
     `mask` (H, W) marks the object's pixels; `fov_y` is the picture's vertical field of view (its
     principal point is assumed at its centre). See the module docstring."""
-    target, target_mask, box = frame_picture(picture, mask, SEARCH_SIZE, background)
-    levels = _targets(target, target_mask)
+    target, target_mask, box, inside = frame_picture(picture, mask, SEARCH_SIZE, background)
+    levels = _targets(target, target_mask, inside)
     fov, principal = crop_intrinsics(picture.shape[-2], picture.shape[-1], box[0], fov_y)
+    seen = _seen_part(mask, box[0], COMPARE_SIZE)
 
     # 1. Candidate views all around, moved so the object fills the crop as in the picture, and scored.
     directions = fibonacci_directions(candidates)
     search = Cameras(DISTANCE * directions, torch.zeros_like(directions), _up_for(directions), fov,
                      principal=principal)
-    search = _center_objects(mesh, search, COMPARE_SIZE)
+    search = _center_objects(mesh, search, COMPARE_SIZE, seen=seen)
     # Silhouette overlap first (a render each); the light fits of the shading term only for the views
     # that overlap best.
     chunks = [list(range(first, min(candidates, first + 32))) for first in range(0, candidates, 32)]
@@ -574,7 +629,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     # degrees off fits the fine bands as badly as a wrong view (it was the right one in 55 of 60 test
     # pictures, and a plain minimum threw it away in 9 of them).
     # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
-    target, target_mask = levels[SEARCH_SIZE]
+    target, target_mask, _ = levels[SEARCH_SIZE]
     overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
     misfits = [texture_misfit(mesh, refined[[i]], target, target_mask[:, 0], PICK_SIGMAS)
                if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK else math.inf for i in range(len(refined))]
