@@ -123,6 +123,24 @@ def test_registration_recovers_the_view():
     assert after < 1.0 and after < before, (before, after)
 
 
+def test_registration_of_an_object_the_frame_cuts_off():
+    """A close camera aimed off the bunny, so that the picture's edge cuts a third of it away: the
+    silhouette past the edge is unknown, not background, and the candidates are placed so that the
+    rest lies past the edge. Registered within a pixel (26 px off when the crop was taken for the
+    whole object)."""
+    mesh, (camera, lights) = _bunny(), _view(index=1)
+    eye = camera.at + 0.4 * (camera.eye - camera.at)
+    forward = torch.nn.functional.normalize(camera.at - eye, dim=-1)
+    right = torch.nn.functional.normalize(torch.cross(forward, camera.up, dim=-1), dim=-1)
+    shift = 0.45 * (camera.at - eye).norm() * right
+    cut = replace(camera, eye=eye + shift, at=camera.at + shift)
+    out = MeshRenderer()(mesh, cut, lights, 160, 160, (0.5, 0.5, 0.5))
+    picture, mask = out.image[0], out.rgba[0, ..., 3] > 0.5
+    assert bool(mask[:, 0].any() or mask[:, -1].any())  # the frame does cut it
+    found = register(mesh, picture, mask, torch.tensor([0.5, 0.5, 0.5]))
+    assert pose_error(mesh, cut, found.camera, 160, 160) < 1.0
+
+
 def test_texture_refinement_survives_a_flat_picture():
     """A picture of one colour gives the texture stage nothing to align on: it still returns a finite
     camera (a singular Gauss-Newton system, from a band with no gradient, is a stop, not a crash)."""
