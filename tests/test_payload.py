@@ -296,10 +296,9 @@ def test_same_inputs_give_the_same_numbers():
     assert decode(z, key="k") == decode(z.clone(), key="k")
 
 
-@pytest.mark.parametrize("cells", [4, 8, 10, 12])
-def test_exact_null_against_an_exact_lattice_distribution(cells):
-    """Every bit `cells` equal cells: z^2 = (sum of signs)^2 / cells, so T's distribution is an exact
-    convolution. The p-value is never below the truth, and within 5 % of it from 10 cells on."""
+def _lattice_tail(cells: int) -> np.ndarray:
+    """P(T * cells >= k), k = 0, 1, ...: 64 bits of `cells` equal cells each, z^2 = (sum of signs)^2 /
+    cells, so T's distribution is an exact convolution."""
     single = np.zeros(cells ** 2 + 1)
     for ones in range(cells + 1):
         single[(2 * ones - cells) ** 2] += math.comb(cells, ones) / 2 ** cells
@@ -307,6 +306,14 @@ def test_exact_null_against_an_exact_lattice_distribution(cells):
     for _ in range(64):
         pmf = np.convolve(pmf, single)  # T * cells on the integers
     tail = pmf[::-1].cumsum()[::-1]
+    return tail
+
+
+@pytest.mark.parametrize("cells", [4, 8, 10, 12])
+def test_exact_null_against_an_exact_lattice_distribution(cells):
+    """Every bit `cells` equal cells: z^2 = (sum of signs)^2 / cells, so T's distribution is an exact
+    convolution. The p-value is never below the truth, and within 5 % of it from 10 cells on."""
+    tail = _lattice_tail(cells)
     for level in (1e-3, 1e-6):
         index = int(np.nonzero(tail <= level)[0][0])
         p = detection_pvalue(np.full(64, math.sqrt(index / cells / 64)), np.ones((64, cells)))
@@ -319,15 +326,9 @@ def test_exact_null_against_an_exact_lattice_distribution(cells):
 def test_bits_of_a_few_equal_cells_get_the_lattice_tail_within_a_chernoff_factor(cells):
     """Small objects: every bit seen by 1-5 equal cells. The bound (`_chernoff_square_sum`) is never
     below the exact tail (a convolution) and within a factor 30 of it at 1e-4 to 1e-8, where
-    chi-square(1) per bit over-states it by up to 7e4 (two cells at 1e-8). Two cells read right on all 64 bits
-    happen with probability 2^-64 without a mark, and that is the p-value."""
-    single = np.zeros(cells ** 2 + 1)
-    for ones in range(cells + 1):
-        single[(2 * ones - cells) ** 2] += math.comb(cells, ones) / 2 ** cells
-    pmf = np.array([1.0])
-    for _ in range(64):
-        pmf = np.convolve(pmf, single)  # T * cells on the integers
-    tail = pmf[::-1].cumsum()[::-1]
+    chi-square(1) per bit over-states it by up to 7e4 (two cells at 1e-8). Two cells read right on all
+    64 bits happen with probability 2^-64 without a mark, and that is the p-value."""
+    tail = _lattice_tail(cells)
     for level in (1e-4, 1e-6, 1e-8):
         if tail[-1] > level:
             continue  # one cell: T = 64 always, no tail at all
