@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 import meshseal
+from meshseal.commands._common import available_cores
 from meshseal.mesh import Material, Mesh, simplify, spherical_uv, vertex_normals
 from meshseal.render import MeshRenderer, cameras_from_eyes, lights_at
 
@@ -68,10 +69,6 @@ def batch_rate(watermarker, original, image, count: int = 20) -> float:
     for _ in range(count):
         watermarker.decide([watermarker.read(image, original)])
     return count / (time.perf_counter() - start)
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def command_line_times(image) -> tuple[float, float, float, float, float, float]:
@@ -137,7 +134,7 @@ def command_line_times(image) -> tuple[float, float, float, float, float, float]
         registered.mkdir()
         for index in range(16):
             shutil.copy(pictures / f"copy_{index:02d}.png", registered / f"copy_{index:02d}.png")
-        registered_rate, registered_right = rate([str(registered), "--register", "--workers", str(_cores())], 16)
+        registered_rate, registered_right = rate([str(registered), "--register", "--workers", str(available_cores())], 16)
     floor = []
     for _ in range(3):
         start = time.perf_counter()
@@ -197,7 +194,7 @@ def main() -> None:
     print(f"command line, fresh process: detect one picture {cli_detect_s:.2f} s, embed --views 0 {cli_embed_s:.2f} s "
           f"(goal <= 1.5 s to the first result); import torch, trimesh, numba alone: {import_floor_s:.2f} s")
     print(f"meshseal detect FOLDER (64 pictures, default workers): {folder_rate:.1f} pictures/s  (goal >= 10)")
-    print(f"meshseal detect FOLDER --register (16 pictures, {_cores()} workers): one picture every "
+    print(f"meshseal detect FOLDER --register (16 pictures, {available_cores()} workers): one picture every "
           f"{folder_registered_ms:.0f} ms, {registered_right:.2f} read right")
     print(f"reference resize+blur of the 512^2 texture: {reference_ms:.1f} ms; embed/reference = {embed_ms / reference_ms:.1f}x")
     print(f"load average at end: {os.getloadavg()}")

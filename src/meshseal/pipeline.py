@@ -236,7 +236,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     averaged = averaged.permute(0, 3, 1, 2)
     pick = lambda image: image.permute(0, 2, 3, 1).reshape(-1, 3).index_select(0, local)  # noqa: E731
     candidates = [found.expected] + [pick(gaussian_blur(averaged, s)) for s in widths]
-    pixel = found.fragments.pixel.index_select(0, found.keep)[usable]
+    pixel = kept[usable]
     image = found.image_index[usable]
     values = torch.cat([found.seen] + candidates, 1)[usable]  # (U, 3 + 3K): one masked blur for all
     detail = values - local_mean(values, pixel, (n_images, height, width), 1.5)

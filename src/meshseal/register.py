@@ -92,13 +92,12 @@ def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 
         with torch.no_grad():
             xy = clip_to_screen(cameras.world_to_clip(used[None].expand(len(cameras), -1, -1), 1.0), size, size)
         low, high = xy.amin(1), xy.amax(1)
+        centre = (low + high) / 2
         if seen is None:
-            centre = (low + high) / 2
             half = (high - low).amax(-1, keepdim=True) / 2 * (1 + 2 * BOX_MARGIN)
             target, grow = torch.full_like(centre, size / 2), (size / 2) / half
         else:
             target, grow = _seen_target(low, high, *seen)
-            centre = (low + high) / 2
         view = cameras.view_matrix()[:, :3, :3]  # rows: right, up, back
         distance = (cameras.at - cameras.eye).norm(dim=-1, keepdim=True)
         # Closer by `grow`, the object's offset from the middle grows by it; the rest is a sideways move

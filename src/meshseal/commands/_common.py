@@ -31,6 +31,13 @@ def colour(text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
+def available_cores() -> int:
+    """The CPU cores this process may run on."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def positive_int(limit: int, minimum: int = 1):
     def parse(text: str) -> int:
         try:

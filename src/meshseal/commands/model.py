@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from contextlib import closing
 from pathlib import Path
 
 from ..errors import MeshsealError
-from ._common import positive_int
+from ._common import available_cores, positive_int
 
 
 def register(subparsers) -> None:
@@ -315,9 +316,9 @@ def run_detect(args) -> int:
         from tqdm import tqdm
 
         progress = tqdm(total=len(pictures), unit="picture", file=sys.stderr)
-    workers = args.workers or (min(_cores(), 8) if len(pictures) >= MANY_PICTURES else 1)
-    with _reader(args, watermarker, original, min(workers, len(pictures))) as read:
-        for path, reading, error in read(pictures):
+    workers = args.workers or (min(available_cores(), 8) if len(pictures) >= MANY_PICTURES else 1)
+    with closing(_readings(args, watermarker, original, pictures, min(workers, len(pictures)))) as read:
+        for path, reading, error in read:  # closing: the worker pool ends even if a line fails
             failed += _report(args, watermarker, path, reading, error, progress, key, expect, readings)
     if progress is not None:
         progress.close()
@@ -349,49 +350,32 @@ def _report(args, watermarker, path, reading, error, progress, key, expect, read
     return 0
 
 
-def _cores() -> int:
+def _readings(args, watermarker, original, paths: list[Path], workers: int):
+    """(path, reading, error text) of each picture, in order. With more than one worker, spawned
+    processes (one thread each) load the model and the original once and read the pictures in
+    parallel; the decisions stay with the caller."""
+    if workers <= 1:
+        yield from (_read_one(watermarker, original, path, args.register, args.fov) for path in paths)
+        return
+    import multiprocessing
     import os
 
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
-class _reader:
-    """`with _reader(args, watermarker, original, workers) as read: for path, reading, error in
-    read(paths)`: the pictures' readings in order, an unreadable picture's error as text. With more
-    than one worker, spawned processes (one torch thread each) load the model and the original once
-    and read the pictures in parallel; the decisions stay in this process."""
-
-    def __init__(self, args, watermarker, original, workers: int):
-        self.options = (args.register, args.fov)
-        self.watermarker, self.original, self.workers, self.pool = watermarker, original, workers, None
-        self.source = (args.model, None if original is None else str(args.mesh))
-
-    def __enter__(self):
-        if self.workers > 1:
-            import multiprocessing
-            import os
-
-            # Spawned, not forked: a fork after torch or numba started their threads can deadlock. One
-            # thread per worker, set before the children import anything: thread pools of several
-            # processes spinning against each other on the same cores cost many times the work.
-            saved = dict(os.environ)
-            os.environ.update({name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
-            try:
-                self.pool = multiprocessing.get_context("spawn").Pool(self.workers, _worker_start, self.source)
-            finally:
-                os.environ.clear()
-                os.environ.update(saved)
-        return self._read
-
-    def __exit__(self, *exc_info):
-        if self.pool is not None:
-            self.pool.terminate()
-            self.pool.join()
-
-    def _read(self, paths):
-        if self.pool is None:
-            return (_read_one(self.watermarker, self.original, path, *self.options) for path in paths)
-        return self.pool.imap(_worker_read, [(path, *self.options) for path in paths])
+    # Spawned, not forked: a fork after torch or numba started their threads can deadlock. One thread
+    # per worker, set before the children import anything: thread pools of several processes spinning
+    # against each other on the same cores cost many times the work.
+    saved = dict(os.environ)
+    os.environ.update({name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
+    try:
+        pool = multiprocessing.get_context("spawn").Pool(
+            workers, _worker_start, (args.model, None if original is None else str(args.mesh)))
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    try:
+        yield from pool.imap(_worker_read, [(path, args.register, args.fov) for path in paths])
+    finally:
+        pool.terminate()
+        pool.join()
 
 
 def _read_one(watermarker, original, path, register: bool, fov: float):
