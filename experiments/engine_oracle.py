@@ -29,22 +29,21 @@ from meshseal.render import make_renderer, pixels_at
 def read(wm, original, picture, camera, prediction=None):
     """(z (N,), along-colour residual RMS) of the shipped filter; `prediction` (1, 3, H, W) replaces
     the relit original."""
-    relit = pipeline.relit_residual
+    relit, seen = pipeline.relit_residual, []
 
     def patched(mesh, image, cameras, light_from="all"):
         found = relit(mesh, image, cameras, light_from)
         if prediction is not None:
             found = replace(found, expected=pixels_at(prediction, found.fragments).index_select(0, found.keep))
+        seen.append(found)
         return found
 
     pipeline.relit_residual = patched
     try:
-        found = patched(original, picture, camera)
-        colour = wm.model.texture_encoder.colour
-        rms = float(((found.seen - found.expected) @ colour).std())
         evidence = spread_evidence(wm.model, original, picture, camera, footprint=prediction is None)
     finally:
         pipeline.relit_residual = relit
+    rms = float(((seen[0].seen - seen[0].expected) @ wm.model.texture_encoder.colour).std())
     return soft_bits(wm.model.texture_encoder, evidence, payload.key_seed(None))[0], rms
 
 

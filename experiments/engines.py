@@ -54,11 +54,15 @@ def meshes(args):
     dataset = MeshDataset(args.data, "test", seed=args.seed)
     for index in range(min(args.meshes, len(dataset))):
         item = dataset[index]
-        n_verts, n_faces = int(item["n_verts"]), int(item["n_faces"])
-        texture = meshseal.Material(texture=item["texture"].permute(1, 2, 0).contiguous())
-        yield item["id"], meshseal.Mesh(item["positions"][:n_verts], item["normals"][:n_verts],
-                                        item["faces"][:n_faces], item["uvs"][:n_verts],
-                                        torch.zeros(n_faces, dtype=torch.long), [texture], up_axis="z")
+        yield item["id"], item_mesh(item)
+
+
+def item_mesh(item: dict) -> meshseal.Mesh:
+    """A dataset item (padded tensors) as a Mesh in the canonical frame, with its texture."""
+    n_verts, n_faces = int(item["n_verts"]), int(item["n_faces"])
+    texture = meshseal.Material(texture=item["texture"].permute(1, 2, 0).contiguous())
+    return meshseal.Mesh(item["positions"][:n_verts], item["normals"][:n_verts], item["faces"][:n_faces],
+                         item["uvs"][:n_verts], torch.zeros(n_faces, dtype=torch.long), [texture], up_axis="z")
 
 
 def png_without_metadata(pixels: torch.Tensor) -> Image.Image:

@@ -20,6 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from engines import item_mesh
 from mark_colour import fixture_visibility, jpeg
 
 import meshseal
@@ -67,14 +68,10 @@ def combine(parts, weights):
 
 
 def test_meshes(data: str, count: int, stride: int):
-    """(name, Mesh) of test meshes 0, stride, 2 stride, ... (canonical frame, own texture)."""
+    """(index, Mesh) of test meshes 0, stride, 2 stride, ... (canonical frame, own texture)."""
     dataset = MeshDataset(data, "test")
     for index in range(0, min(count * stride, len(dataset)), stride):
-        item = dataset[index]
-        n_verts, n_faces = int(item["n_verts"]), int(item["n_faces"])
-        texture = meshseal.Material(texture=item["texture"].permute(1, 2, 0).contiguous())
-        yield index, meshseal.Mesh(item["positions"][:n_verts], item["normals"][:n_verts], item["faces"][:n_faces],
-                                   item["uvs"][:n_verts], torch.zeros(n_faces, dtype=torch.long), [texture], up_axis="z")
+        yield index, item_mesh(dataset[index])
 
 
 def main() -> None:

@@ -305,8 +305,7 @@ def _lattice_tail(cells: int) -> np.ndarray:
     pmf = np.array([1.0])
     for _ in range(64):
         pmf = np.convolve(pmf, single)  # T * cells on the integers
-    tail = pmf[::-1].cumsum()[::-1]
-    return tail
+    return pmf[::-1].cumsum()[::-1]
 
 
 @pytest.mark.parametrize("cells", [4, 8, 10, 12])
