@@ -174,6 +174,42 @@ def test_each_pixels_brightness_is_taken_off():
     assert float((fitted * signs).mean()) > 2.0 * float((ignored * signs).mean())
 
 
+def test_light_added_in_linear_light_is_taken_off_where_it_is():
+    """An engine shades in linear light: noise or a highlight added there lifts a saturated colour's
+    dark channel in sRGB, partly along the mark's colour. The matched filter takes that direction off
+    where the residual varies along it, and reads such a picture of a saturated asset far better than
+    without; on a clean picture it changes almost nothing."""
+    import meshseal.pipeline as pipeline
+    from meshseal.models.spread import soft_bits
+
+    model, mesh, message, _, _ = _marked_and_original()
+    tint = torch.tensor([0.05, 0.55, 1.0])  # a saturated blue, red near black (a deck chair's stripes)
+    texture = (mesh.materials[0].texture * tint).permute(2, 0, 1)[None]
+    original, marked = MeshBatch.from_mesh(mesh), MeshBatch.from_mesh(mesh)
+    original.textures, marked.textures = [texture[0]], [model.mark_texture(texture, message, 1.0)[0]]
+    signs = 2 * message - 1
+    cameras, lights = sample_views(2, "seed", torch.Generator().manual_seed(4))
+    to_linear = lambda x: torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)  # noqa: E731
+    to_srgb = lambda x: torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0) ** (1 / 2.4) - 0.055)  # noqa: E731
+    with torch.no_grad():
+        clean = MeshRenderer()(marked, cameras, lights, 128, 128).image
+        noise = 0.06 * torch.rand(2, 1, 128, 128, generator=torch.Generator().manual_seed(5))
+        noisy = _quantise(to_srgb(to_linear(clean) + noise))
+
+        def read(picture, ratio):
+            saved, pipeline.LINEAR_LIGHT_RATIO = pipeline.LINEAR_LIGHT_RATIO, ratio
+            try:
+                evidence = pipeline.spread_evidence(model, original, picture, cameras)
+            finally:
+                pipeline.LINEAR_LIGHT_RATIO = saved
+            return float((soft_bits(model.texture_encoder, evidence) * signs).mean())
+
+        taken_off, kept = read(noisy, pipeline.LINEAR_LIGHT_RATIO), read(noisy, 1e9)  # 1e9: never taken off
+        clean_now, clean_before = read(_quantise(clean), pipeline.LINEAR_LIGHT_RATIO), read(_quantise(clean), 1e9)
+    assert taken_off > 1.3 * kept
+    assert clean_now > 0.95 * clean_before
+
+
 def test_local_mean_averages_over_covered_pixels_only():
     from meshseal.models.spread import local_mean
 

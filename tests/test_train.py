@@ -52,6 +52,22 @@ def _config(data, **train):
     return TrainConfig.from_dict(values)
 
 
+def test_a_run_can_start_from_another_with_a_part_frozen(dataset, tmp_path):
+    """The paper's Table 8: a texture encoder trained first, then kept fixed while the rest learns."""
+    Trainer(_config(dataset, steps=2, val_every=2, checkpoint_every=2), tmp_path / "first", log=lambda *_: None).fit()
+    first = load_model(tmp_path / "first" / "model.safetensors").state_dict()
+    config = _config(dataset, steps=3, pretrain_steps=0, val_every=3, checkpoint_every=3,
+                     init_from=str(tmp_path / "first" / "model.safetensors"), frozen=["texture_encoder"])
+    Trainer(config, tmp_path / "second", log=lambda *_: None).fit()
+    second = load_model(tmp_path / "second" / "model.safetensors").state_dict()
+    weights = [k for k in first if first[k].is_floating_point() and "running" not in k]
+    encoder = [k for k in weights if k.startswith("texture_encoder.")]
+    assert encoder and all(torch.equal(first[k], second[k]) for k in encoder)
+    assert any(not torch.equal(first[k], second[k]) for k in weights if k.startswith("decoder."))
+    with pytest.raises(meshseal.MeshsealError, match="no spoiler"):
+        Trainer(_config(dataset, frozen=["spoiler"]), tmp_path / "bad", log=lambda *_: None)
+
+
 def test_training_writes_logs_checkpoints_and_weights(dataset, tmp_path):
     summary = Trainer(_config(dataset), tmp_path / "run", log=lambda *_: None).fit()
     assert summary["steps"] == 6

@@ -33,6 +33,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
     renderer = MeshRenderer()
     count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
     accuracies, psnrs, ssims, texture_psnrs, normal_l1, uv_l1, seen = [], [], [], [], [], [], []
+    render_l1, texture_l1, texture_ssims = [], [], []
     device = model.device
     for view in range(views):
         for start in range(0, count, batch_size):
@@ -48,6 +49,9 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
             seen.append(visibility(out.render.cpu(), out.render_marked.cpu(), out.coverage.cpu()))
             ssims.append(ssim(out.render_marked, out.render))
             texture_psnrs.append(psnr(out.texture_marked, out.texture))
+            render_l1.append((out.render_marked - out.render).abs().mean().reshape(1))
+            texture_l1.append((out.texture_marked - out.texture).abs().mean().reshape(1))
+            texture_ssims.append(ssim(out.texture_marked, out.texture))
             normal_l1.append(masked_l1(out.normals_marked, out.normals, mask).reshape(1))
             uv_l1.append(masked_l1(out.uvs_marked, out.uvs, mask).reshape(1))
     model.train(was_training)
@@ -62,6 +66,9 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
         "psnr_render": float(finite(torch.cat(psnrs)).mean()),
         "ssim_render": float(torch.cat(ssims).mean()),
         "psnr_texture": float(finite(torch.cat(texture_psnrs)).mean()),
+        "ssim_texture": float(torch.cat(texture_ssims).mean()),
+        "l1_texture": float(torch.cat(texture_l1).mean()),
+        "l1_render": float(torch.cat(render_l1).mean()),
         "l1_normal": float(torch.cat(normal_l1).mean()),
         "l1_uv": float(torch.cat(uv_l1).mean()),
         "n_meshes": count,

@@ -175,6 +175,9 @@ def read_bits(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, camer
 
 
 FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
+LINEAR_LIGHT_SIGMA = 2.0  # px: window of the residual's variance along and across light added in linear light
+LINEAR_LIGHT_RATIO = 1.0  # taken off fully where the variance along it is this many times that across
+LINEAR_LIGHT_DISTINCT = 0.05  # and where its direction differs this much (sine) from the brightness's
 
 
 @dataclass
@@ -252,6 +255,45 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     return Footprint(expected, usable, sigma, fine, parent, scale)
 
 
+def linear_light_direction(expected: torch.Tensor) -> torch.Tensor:
+    """How each predicted sRGB colour (P, 3) moves when white light is added to it in linear light ->
+    directions (P, 3), the part orthogonal to the colour itself (its brightness is fitted on its own)
+    of a unit vector.
+
+    Every physically based engine shades in linear light: a specular highlight, Workbench's studio
+    light or light bounced off the rest of the scene adds to the linear value. In sRGB that moves each
+    channel by the slope of the sRGB curve at its linear value: steep on dark channels, so it lifts a
+    saturated colour's darkest channel most (a deck chair's blue stripes) and is no longer white; on a
+    grey pixel it is the brightness, and the direction returned is short there."""
+    linear = torch.where(expected <= 0.04045, expected / 12.92, ((expected.clamp_min(0.0) + 0.055) / 1.055) ** 2.4)
+    slope = torch.where(linear <= 0.0031308, torch.full_like(linear, 12.92),
+                        1.055 / 2.4 * linear.clamp_min(0.0031308) ** (1.0 / 2.4 - 1.0))
+    slope = F.normalize(slope, dim=1)
+    brightness = F.normalize(expected, dim=1, eps=1e-6)
+    return slope - (slope * brightness).sum(1, keepdim=True) * brightness
+
+
+def take_off_linear_light(residual: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor,
+                          shape: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals (P, 3) (brightness already taken off) with light added in linear light
+    (`linear_light_direction`: a highlight, bounced light, a path tracer's noise) taken off where they
+    vary along it more than across it, smoothly (fully at `LINEAR_LIGHT_RATIO`), over windows of
+    `LINEAR_LIGHT_SIGMA` px; elsewhere the mark keeps all its colour. Returns the residuals and the
+    direction taken off at each pixel, scaled by the square root of how much was (for the template's
+    gain). Looks at the picture and the original only, never at a key."""
+    from .models.spread import local_mean
+
+    added = linear_light_direction(expected)
+    unit = F.normalize(added, dim=1, eps=1e-6)
+    across = torch.cross(F.normalize(expected, dim=1, eps=1e-6), unit, dim=1)
+    along_added = local_mean((residual * unit).sum(1) ** 2, pixel, shape, LINEAR_LIGHT_SIGMA)
+    along_across = local_mean((residual * across).sum(1) ** 2, pixel, shape, LINEAR_LIGHT_SIGMA)
+    weight = (1.0 - LINEAR_LIGHT_RATIO * along_across / along_added.clamp_min(1e-12)).clamp(0.0, 1.0)
+    weight = weight * ((added * added).sum(1) / LINEAR_LIGHT_DISTINCT ** 2).clamp(max=1.0)
+    residual = residual - weight[:, None] * (residual * unit).sum(1, keepdim=True) * unit
+    return residual, weight.sqrt()[:, None] * unit
+
+
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
@@ -287,9 +329,13 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             # lit from behind, a tone curve): taken off along the predicted colour, so the residual
             # keeps the part of the mark orthogonal to it, and the template scales by what is left.
             ratio = (found.seen * expected).sum(1) / (expected * expected).sum(1).clamp_min(1e-6)
-            along = ((found.seen - ratio[:, None] * expected) * colour).sum(1)
+            residual = found.seen - ratio[:, None] * expected
             direction = expected / expected.norm(dim=1, keepdim=True).clamp_min(1e-6)
             gain = gain * ratio.clamp(0.0, 3.0) * (1.0 - (direction * colour).sum(1) ** 2)
+            residual, taken = take_off_linear_light(residual, expected, pixel, (n_images, height, width))
+            along = (residual * colour).sum(1)
+            kept = 1.0 - (direction * colour).sum(1) ** 2  # the mark keeps this much of its colour ...
+            gain = gain * (kept - (taken * colour).sum(1) ** 2) / kept.clamp_min(1e-6)  # ... and loses this
         else:
             along = ((found.seen - expected) * colour).sum(1)
         whitened = torch.zeros_like(along)

@@ -33,6 +33,8 @@ from .models.io import save_model, save_tensors
 from .pipeline import random_backgrounds, run_pass
 from .render import MeshRenderer
 
+FREEZABLE = ("texture_encoder", "vertex_encoder", "decoder")
+
 
 @dataclass
 class LossWeights:
@@ -74,6 +76,8 @@ class TrainSettings:
     reference_steps: int = 0  # informed models: subtract the exact original render at first, fading out by this step
     texture_rms_start: float | None = None  # fixed-power marks: start this loud, reach texture_rms after warmup_steps
     lr_decay_from: int | None = None  # cosine decay of the learning rate to 5 % from this step to the last
+    init_from: str | None = None  # start from these weights (a model.safetensors of the same architecture)
+    frozen: list | None = None  # parts kept as they start: texture_encoder | vertex_encoder | decoder
 
 
 @dataclass
@@ -212,7 +216,14 @@ class Trainer:
         if self.model.informed and config.train.pretrain_steps > 0:
             raise MeshsealError("pretrain_steps must be 0 for an informed (uv) decoder: its input is a UV map, "
                                 "not a picture")
-        self.parameters = list(self.model.parameters())
+        if config.train.init_from:
+            self._start_from(Path(config.train.init_from))
+        for name in config.train.frozen or []:
+            part = getattr(self.model, name, None)
+            if name not in FREEZABLE or part is None:
+                raise MeshsealError(f"frozen: this model has no {name} ({' | '.join(FREEZABLE)})")
+            part.requires_grad_(False)
+        self.parameters = [p for p in self.model.parameters() if p.requires_grad]
         # eta * sum(w^2) in the loss is exactly Adam's coupled weight decay 2 * eta.
         self.optimizer = torch.optim.Adam(self.parameters, lr=config.train.lr, weight_decay=2 * config.loss.reg) \
             if self.parameters else None  # a spread-spectrum model has nothing to learn
@@ -224,6 +235,15 @@ class Trainer:
         self.elapsed = 0.0
         if resume and (self.out / "checkpoint.safetensors").is_file():
             self._restore()
+
+    def _start_from(self, path: Path) -> None:
+        """Weights of another run (the paper's Table 8: a texture encoder trained on images alone)."""
+        from .models.io import load_model
+
+        source = load_model(path)
+        if source.config != self.model.config:
+            raise MeshsealError(f"{path}: its model differs from this config's (init_from needs the same architecture)")
+        self.model.load_state_dict(source.state_dict())
 
     # -------------------------------------------------------- checkpoints
     def _checkpoint(self) -> None:
