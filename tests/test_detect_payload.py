@@ -4,6 +4,7 @@ pictures, a known message (--expect), pooling, folders and per-picture errors.""
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from meshseal.cli import main
@@ -65,11 +66,23 @@ def test_worker_processes_read_as_one_process_does(pictures, capsys):
     pictures_named = [pictures / "missing.png", pictures / "views", pictures / "clean.png", "--key", "s3cret"]
     alone = _detect(capsys, *pictures_named, "--workers", "1")
     together = _detect(capsys, *pictures_named, "--workers", "2")
-    assert alone[0] == together[0] == 2 and alone[1] == together[1] and len(alone[1]) == 4
+    assert alone[0] == together[0] == 2 and len(alone[1]) == len(together[1]) == 4
+    assert all(_same_reading(a, b) for a, b in zip(alone[1], together[1]))
     assert together[2].count("meshseal: error:") == 1 and "missing.png" in together[2]
     assert [r.get("message") for r in together[1]] == [None, "ab42", "ab42", None]
     pooled = _detect(capsys, pictures / "views", "--key", "s3cret", "--pool", "--workers", "2")
-    assert pooled[1] == _detect(capsys, pictures / "views", "--key", "s3cret", "--pool")[1]
+    assert _same_reading(pooled[1][0], _detect(capsys, pictures / "views", "--key", "s3cret", "--pool")[1][0])
+
+
+def _same_reading(a: dict, b: dict) -> bool:
+    """The same result line up to float rounding: a worker runs one thread, the caller several, and
+    sums in another order move a z-score in its third decimal."""
+    rounded = ("soft", "p_value")
+    if {k: v for k, v in a.items() if k not in rounded} != {k: v for k, v in b.items() if k not in rounded}:
+        return False
+    if "soft" in a and not np.allclose(a["soft"], b["soft"], atol=5e-3):
+        return False
+    return a.get("p_value") is None or np.isclose(np.log(a["p_value"]), np.log(b["p_value"]), rtol=1e-3)
 
 
 def test_payload_limits_and_models_listing(pictures, tmp_path, capsys):

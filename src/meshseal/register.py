@@ -649,3 +649,17 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     if texture_refine:
         camera = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
     return Registration(camera, box[0], silhouette_iou(mesh, camera, mask))
+
+
+def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,
+                        fov_y: float = FOV) -> Registration:
+    """`register` with each of several guesses of the object's pixels (H, W) (e.g. a busy background's
+    colour-guided cut and the plain-background threshold, when they disagree), keeping the camera under
+    which the original's texture explains the picture best (`texture_misfit` over the registered
+    silhouette's own interior, so no guess judges itself)."""
+    found = [register(mesh, picture, mask, background, fov_y=fov_y) for mask in masks]
+    if len(found) == 1:
+        return found[0]
+    everywhere = torch.ones_like(masks[0][None], dtype=picture.dtype)
+    misfits = [texture_misfit(mesh, f.camera, picture[None].clamp(0, 1), everywhere, PICK_SIGMAS) for f in found]
+    return found[min(range(len(found)), key=misfits.__getitem__)]
