@@ -67,10 +67,14 @@ def crop_boxes(image: torch.Tensor, boxes: torch.Tensor, size: int, background: 
     return F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=False) + shift
 
 
+def border_pixels(image: np.ndarray) -> np.ndarray:
+    """The pixels of the image's (H, W, C) outermost rows and columns (N, C)."""
+    return np.concatenate([image[0], image[-1], image[:, 0], image[:, -1]])
+
+
 def estimate_background(image: np.ndarray) -> np.ndarray:
     """The median colour of the image border (H, W, 3) -> (3,)."""
-    border = np.concatenate([image[0], image[-1], image[:, 0], image[:, -1]])
-    return np.median(border, axis=0)
+    return np.median(border_pixels(image), axis=0)
 
 
 def background_plane(image: np.ndarray, threshold: float = 0.03, rounds: int = 3) -> np.ndarray:

@@ -27,12 +27,10 @@ def busy_background(image: np.ndarray, threshold: float = 0.03) -> bool:
     border lies within `threshold` of the linear ramp `framing.background_plane` fits to it. A plain
     colour or a gradient puts all of it there; an object the frame cuts off, or a texture atlas with
     plain patches, most of it, so the bar is high and the caller also keeps the plain guess."""
-    from .framing import background_plane
+    from .framing import background_plane, border_pixels
 
-    border = np.concatenate([image[0], image[-1], image[:, 0], image[:, -1]])
-    plane = background_plane(image, threshold)
-    fitted = np.concatenate([plane[0], plane[-1], plane[:, 0], plane[:, -1]])
-    return float(np.mean(np.abs(border - fitted).max(-1) <= threshold)) < PLAIN_SHARE
+    off = np.abs(border_pixels(image) - border_pixels(background_plane(image, threshold))).max(-1)
+    return float(np.mean(off <= threshold)) < PLAIN_SHARE
 
 
 def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
