@@ -151,3 +151,19 @@ def test_fixed_power_mark_has_the_configured_rms():
     with torch.no_grad():
         other = model.texture_encoder(texture, 1 - message)
     assert float((other - marked).abs().mean()) > 0.01  # the pattern carries the message
+
+
+def test_fixed_power_after_clip_holds_the_rms_on_saturated_textures():
+    texture = torch.full((2, 3, 64, 64), 0.98)
+    texture[:, :, :, 32:] = 0.0  # half near white, half black: most of a raw residual is clipped away
+    message = torch.randint(0, 2, (2, 8), generator=torch.Generator().manual_seed(0)).float()
+    kept = {}
+    for after_clip in (False, True):
+        torch.manual_seed(0)
+        config = ModelConfig.from_dict(dict(SMALL, n_bits=8, texture_rms=0.05, texture_rms_after_clip=after_clip))
+        model = WatermarkModel(config).eval()
+        with torch.no_grad():
+            marked = model.texture_encoder(texture, message)
+        kept[after_clip] = (marked - texture).pow(2).mean(dim=(1, 2, 3)).sqrt()
+    assert bool((kept[False] < 0.04).all())  # the raw rescale loses power to clipping
+    assert torch.allclose(kept[True], torch.tensor([0.05, 0.05]), rtol=0.1)

@@ -205,3 +205,13 @@ def test_registered_eval_counts_refused_pictures_and_stays_strict_json(dataset, 
     assert result["n_unreadable"] == 2 and result["bit_acc"] == 0.5 and result["registration_success"] == 0.0
     assert result["pose_error_px"] == {"median": None, "p90": None, "max": None}
     json.dumps(result, allow_nan=False)
+
+
+def test_train_device_errors_are_clear(dataset, tmp_path):
+    import yaml
+
+    path = tmp_path / "run.yaml"
+    path.write_text(yaml.safe_dump(_config(dataset).to_dict()))
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "run"), "--device", "no-such"]) == 2
+    if not torch.cuda.is_available():
+        assert main(["train", "--config", str(path), "--out", str(tmp_path / "run"), "--device", "cuda"]) == 2

@@ -173,7 +173,8 @@ def _optimizer_tensors(optimizer: torch.optim.Optimizer, parameters: list) -> di
 def _load_optimizer_tensors(optimizer, parameters, tensors) -> None:
     for name, value in tensors.items():
         index, key = name.split(".", 1)
-        optimizer.state[parameters[int(index)]][key] = value
+        parameter = parameters[int(index)]
+        optimizer.state[parameter][key] = value if key == "step" else value.to(parameter.device)  # Adam keeps step on the CPU
 
 
 class CachedItems:

@@ -85,6 +85,10 @@ def register(subparsers) -> None:
     train.add_argument("--out", type=Path, default=None, help="run folder (default runs/<config name>)")
     train.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
     train.add_argument("--data", type=Path, default=None, help="override the config's dataset folder")
+    train.add_argument("--device", default="auto",
+                       help="torch device: auto (cuda when one is there, else cpu) | cpu | cuda | cuda:N")
+    train.add_argument("--time-limit", type=float, default=None, metavar="MINUTES",
+                       help="override the config's time_limit_minutes (total training time, resumed runs included)")
     train.set_defaults(func=run_train)
 
     tune = subparsers.add_parser("finetune", help="fine-tune a learned decoder on another engine's pictures",
@@ -442,6 +446,20 @@ def run_eval(args) -> int:
     return 0
 
 
+def _train_device(name: str) -> str:
+    import torch
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise MeshsealError(f"--device {name}: not a torch device (auto | cpu | cuda | cuda:N)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise MeshsealError(f"--device {name}: this machine has no CUDA device")
+    return name
+
+
 def run_train(args) -> int:
     from ..train import TrainConfig, Trainer
 
@@ -450,8 +468,10 @@ def run_train(args) -> int:
         config.data = str(args.data)
     if not Path(config.data).is_dir():
         raise MeshsealError(f"{config.data}: no dataset folder; build one with 'meshseal data build --out {config.data}'")
+    if args.time_limit is not None:
+        config.train.time_limit_minutes = args.time_limit
     out = args.out or Path("runs") / config.name
-    summary = Trainer(config, out, resume=args.resume).fit()
+    summary = Trainer(config, out, resume=args.resume, device=_train_device(args.device)).fit()
     print(json.dumps(summary | {"out": str(out)}))
     return 0
 

@@ -26,6 +26,7 @@ class TextureEncoder(nn.Module):
     size: int = 128
     strength: float = 0.1
     rms: float = 0.0  # > 0: the residual is rescaled to this RMS (a fixed-power mark; strength is unused)
+    rms_after_clip: bool = False  # hold the RMS of what survives clipping to [0, 1], not of the raw residual
 
     def residual(self, texture: torch.Tensor, message: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
@@ -40,6 +41,9 @@ class TextureEncoder(nn.Module):
         raw = self.residual(working, message)
         if self.rms > 0:  # always the full budget: the decoder has a mark to find from the first step
             residual = self.rms * raw / raw.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt().clamp_min(1e-8)
+            for _ in range(2 if self.rms_after_clip else 0):  # else an encoder can hide its power in clipped texels
+                kept = (working + residual).clamp(0.0, 1.0) - working
+                residual = self.rms * kept / kept.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt().clamp_min(1e-8)
         else:
             residual = self.strength * torch.tanh(raw)
         if (height, width) != (self.size, self.size):

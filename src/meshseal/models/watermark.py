@@ -27,6 +27,7 @@ class ModelConfig:
     texture_downsample: int = 1
     texture_strength: float = 0.1
     texture_rms: float = 0.0  # > 0: fixed-power mark of this RMS at the working size (texture PSNR ~ -20 log10 rms)
+    texture_rms_after_clip: bool = False  # the RMS held is that of the mark left after clipping to [0, 1]
     texture_size: int = 128
     texture_tile: int = 0  # > 0: a learned periodic carrier of this period (in working-size texels)
     texture_tile_channels: int = 8
@@ -77,6 +78,7 @@ class WatermarkModel(nn.Module):
                                                             config.texture_downsample, config.texture_tile,
                                                             config.texture_tile_channels)
                 self.texture_encoder.rms = config.texture_rms
+                self.texture_encoder.rms_after_clip = config.texture_rms_after_clip
             elif config.texture_encoder == "spread":
                 self.texture_encoder = SpreadSpectrumEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
                                                              config.activity_window, config.activity_floor,
@@ -84,6 +86,7 @@ class WatermarkModel(nn.Module):
             elif config.texture_encoder == "unet":
                 self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
                 self.texture_encoder.rms = config.texture_rms
+                self.texture_encoder.rms_after_clip = config.texture_rms_after_clip
             else:
                 raise ValueError(f"unknown texture encoder '{config.texture_encoder}'")
         self.vertex_encoder = None
