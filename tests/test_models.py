@@ -124,6 +124,16 @@ def test_distortions_keep_shapes_and_gradients():
     assert positions.grad is not None
 
 
+def test_boxes_of_a_batch_each_fit_their_own_mask():
+    masks = torch.zeros(3, 40, 60, dtype=torch.bool)
+    masks[0, 10:20, 5:45] = True  # wide: the side is the width plus margins
+    masks[2, 30, 50] = True  # one pixel: the smallest box
+    boxes = boxes_from_mask(masks, margin=0.1)
+    assert torch.allclose(boxes[0], torch.tensor([25.0, 15.0, 24.0]))
+    assert torch.allclose(boxes[1], torch.tensor([30.0, 20.0, 30.0]))  # empty: the whole picture
+    assert torch.allclose(boxes[2], torch.tensor([50.5, 30.5, 4.0]))
+
+
 def test_framing_finds_the_object_and_crops_square():
     picture = np.full((200, 300, 3), 0.9, dtype=np.float32)
     picture[50:110, 120:200] = 0.2

@@ -303,3 +303,22 @@ def test_multi_material_renders_every_texture():
         difference = (rgba[0, ..., :3] - output.rgba[0, ..., :3]).abs().amax(-1) > 1e-6
         assert bool(difference[~pixels].any()) is False
         assert float(difference[pixels].float().mean()) > 0.9
+
+
+def test_a_texture_stack_samples_as_the_list_does():
+    """Training batches sample a (N, C, H, W) stack in one gather; values and gradients match the list path."""
+    from meshseal.render.texture import sample_textures
+
+    generator = torch.Generator().manual_seed(0)
+    stack = torch.rand(5, 3, 16, 12, generator=generator, dtype=torch.float64)
+    uv = torch.rand(3000, 2, generator=generator, dtype=torch.float64) * 3 - 1  # across the seams
+    index = torch.randint(0, 5, (3000,), generator=generator)
+    results = []
+    for textures in (list(stack.clone().unbind(0)), stack.clone()):
+        leaves = [t.requires_grad_() for t in textures] if isinstance(textures, list) else [textures.requires_grad_()]
+        coords = uv.clone().requires_grad_()
+        values = sample_textures(textures, coords, index)
+        (values * torch.linspace(0, 1, values.numel(), dtype=values.dtype).reshape(values.shape)).sum().backward()
+        results.append((values, torch.stack([t.grad for t in leaves]).reshape(5, 3, 16, 12), coords.grad))
+    for a, b in zip(*results):
+        assert torch.allclose(a, b, atol=1e-12)

@@ -21,15 +21,19 @@ def boxes_from_mask(mask: torch.Tensor, margin: float = BOX_MARGIN) -> torch.Ten
     An empty mask gives the whole image.
     """
     n, height, width = mask.shape
-    boxes = torch.empty(n, 3, dtype=torch.float32)
-    for index in range(n):
-        rows = torch.nonzero(mask[index].any(dim=1)).squeeze(1)
-        cols = torch.nonzero(mask[index].any(dim=0)).squeeze(1)
-        if len(rows) == 0:
-            boxes[index] = torch.tensor([width / 2, height / 2, max(height, width) / 2])
-            continue
-        boxes[index] = _square_box(float(rows[0]), float(rows[-1]) + 1, float(cols[0]), float(cols[-1]) + 1, margin)
-    return boxes
+    rows, cols = mask.any(dim=2), mask.any(dim=1)  # one pass on the mask's device, no per-image round trip
+    row_index = torch.arange(height, device=mask.device)
+    col_index = torch.arange(width, device=mask.device)
+    top = torch.where(rows, row_index, height).amin(1)
+    bottom = torch.where(rows, row_index, -1).amax(1) + 1
+    left = torch.where(cols, col_index, width).amin(1)
+    right = torch.where(cols, col_index, -1).amax(1) + 1
+    top, bottom, left, right = (t.double().cpu() for t in (top, bottom, left, right))
+    half = (torch.maximum(bottom - top, right - left) / 2 * (1 + 2 * margin)).clamp_min(4.0)
+    boxes = torch.stack([(left + right) / 2, (top + bottom) / 2, half], dim=1)
+    empty = ~rows.any(dim=1).cpu()
+    boxes[empty] = torch.tensor([width / 2, height / 2, max(height, width) / 2], dtype=boxes.dtype)
+    return boxes.float()
 
 
 def box_from_points(xy: torch.Tensor, height: int, width: int, margin: float = BOX_MARGIN) -> torch.Tensor:

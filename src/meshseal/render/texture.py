@@ -32,6 +32,8 @@ def sample_textures(textures, uv: torch.Tensor, texture_index: torch.Tensor) -> 
     out = uv.new_ones(uv.shape[0], 3)
     if uv.shape[0] == 0:
         return out
+    if torch.is_tensor(textures):
+        return _sample_stack(textures, uv, texture_index).to(out.dtype)
     for index in torch.unique(texture_index).tolist():
         texture = textures[index]
         if texture is None:
@@ -40,3 +42,23 @@ def sample_textures(textures, uv: torch.Tensor, texture_index: torch.Tensor) -> 
         selected = torch.nonzero(mask).squeeze(1)
         out = out.index_copy(0, selected, sample_texture(texture, uv[selected]).to(out.dtype))
     return out
+
+
+def _sample_stack(textures: torch.Tensor, uv: torch.Tensor, texture_index: torch.Tensor) -> torch.Tensor:
+    """`sample_texture` for a stack (N, C, H, W), every fragment from its own texture in one gather: no
+    per-texture loop, so no host round trip per texture on a GPU (a training batch has 2 x 32 of them)."""
+    n_textures, channels, height, width = textures.shape
+    padded = F.pad(textures, (1, 1, 1, 1), mode="circular").permute(0, 2, 3, 1).reshape(-1, channels)
+    u = uv[:, 0] - torch.floor(uv[:, 0].detach())
+    v = uv[:, 1] - torch.floor(uv[:, 1].detach())
+    # Positions in the padded texture's texel grid (centres at integers): within [0.5, size + 0.5].
+    x = (u * width + 0.5).to(textures.dtype)
+    y = ((1.0 - v) * height + 0.5).to(textures.dtype)
+    x0, y0 = torch.floor(x.detach()), torch.floor(y.detach())
+    wx, wy = (x - x0).unsqueeze(1), (y - y0).unsqueeze(1)
+    col = x0.long().clamp(0, width)
+    row = y0.long().clamp(0, height)
+    base = texture_index.long() * ((height + 2) * (width + 2)) + row * (width + 2) + col
+    top = torch.lerp(padded.index_select(0, base), padded.index_select(0, base + 1), wx)
+    bottom = torch.lerp(padded.index_select(0, base + width + 2), padded.index_select(0, base + width + 3), wx)
+    return torch.lerp(top, bottom, wy)
