@@ -66,7 +66,7 @@ def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, ca
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", bits,
                  "--views", "1", "--json", "--preview", str(tmp_path / "sheet.png")]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert 39.5 < report["psnr_texture"] < 40.5
+    assert 39.5 < report["psnr_texture"] < 40.5 and report["cells"] == 128  # the bunny's cells are over a pixel
     assert report["psnr_object"] < report["psnr_frame"]  # the background inflates the whole-frame figure
     assert 0.0 < report["flip_object"] < 0.05 and report["ssim_object"] > 0.98
     from PIL import Image
@@ -295,3 +295,42 @@ def test_the_mark_mask_is_kept_only_while_the_texture_is_unchanged():
         expected = activity_mask(texture, encoder.window, encoder.floor) * encoder.colour[None, :, None, None]
         assert not torch.equal(first, second) and torch.equal(second, expected)
     assert encoder.amplitude(texture) is not second  # with gradients (training): never kept
+
+
+def test_a_minified_texture_is_marked_on_coarser_cells_and_either_grid_is_read():
+    """Where 128^2 cells would be a fraction of a pixel, `embed` marks on 64^2 cells; detection reads both
+    grids there, so a mark on the model's own grid (made before) is still found, and a clean picture is not."""
+    from dataclasses import replace
+
+    from meshseal import payload
+    from meshseal.api import Watermarker
+    from meshseal.models.spread import cell_pixels
+
+    bunny = load(FIXTURES / "bunny.glb")
+    small = replace(bunny, uvs=bunny.uvs * 8)  # the texture repeated 8 x 8 times as often over the surface
+    model = WatermarkModel(SPREAD)
+    assert model.mark_grid(bunny.positions, bunny.faces, bunny.uvs) == 128
+    assert model.mark_grid(small.positions, small.faces, small.uvs) == 64
+    encoder = model.texture_encoder
+    assert encoder.grids_to_read(bunny.positions, bunny.faces, bunny.uvs) == (128,)  # no second try to pay for
+    assert encoder.grids_to_read(small.positions, small.faces, small.uvs) == (128, 64)
+    base = cell_pixels(small.positions, small.faces, small.uvs, 128)
+    assert abs(cell_pixels(small.positions * 37 + 5, small.faces, small.uvs, 128) - base) < 1e-5 * base  # any units
+
+    wm = Watermarker(model)
+    original = wm.original(small)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
+    bits = payload.encode("ab42", None, 64)[None]
+    texture = small.materials[0].texture.permute(2, 0, 1)[None]
+    old_style = small.copy()
+    old_style.materials[0].texture = model.mark_texture(texture, bits, 1.0, payload.key_seed(None), 128)[0].permute(1, 2, 0)
+
+    def detection(mesh):
+        with torch.no_grad():
+            image = MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(mesh))), cameras, lights, 256, 256).image
+        return wm.decide([wm.read(_quantise(image)[0].permute(1, 2, 0).numpy(), original, camera=cameras)])
+
+    for mesh in (wm.embed(small, "ab42"), old_style):
+        found = detection(mesh)
+        assert found.detected and found.message == "ab42"
+    assert not detection(small).detected

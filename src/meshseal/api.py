@@ -240,10 +240,11 @@ class Watermarker:
         textured = [m for m in marked.materials if m.texture is not None]
         encoder = self.model
         if encoder.texture_encoder is not None and textured and marked.uvs is not None:
+            grid = self.mark_grid(marked)
             for material in textured:
                 texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
                 try:
-                    marked_texture = encoder.mark_texture(texture, message, strength, key_seed)
+                    marked_texture = encoder.mark_texture(texture, message, strength, key_seed, grid)
                 except ValueError as error:
                     raise MeshsealError(str(error)) from None
                 material.texture = marked_texture[0].permute(1, 2, 0).cpu()
@@ -277,6 +278,13 @@ class Watermarker:
         sum per bit given the picture's cell evidence): detection decisions and p-values need them
         (spread-spectrum models)."""
         return self.model.config.decoder == "matched"
+
+    def mark_grid(self, mesh: Mesh) -> int | None:
+        """Cells per side of the UV square that a spread mark uses on `mesh` (coarser where its texture
+        is minified, see `models.spread`); None for learned marks or a mesh without a texture and UVs."""
+        if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
+            return None
+        return self.model.mark_grid(mesh.positions, _textured_faces(mesh), mesh.uvs)
 
     # ------------------------------------------------------------ detect
     @torch.no_grad()
@@ -313,24 +321,22 @@ class Watermarker:
                  "registration_iou": first.registration_iou if len(readings) == 1 else None,
                  "pictures": len(readings)}
         evidence = torch.stack([r.evidence for r in readings]).sum(0, keepdim=True)
-        weights = None
+        weights, tries = None, 1
+        expected = payload.encode(expect, key, self.n_bits) if expect is not None and self.n_bits in payload.SCHEMAS else None
         if self.calibrated:
-            from .models.spread import bit_weights, soft_bits
-
-            soft = soft_bits(self.model.texture_encoder, evidence, self._key_seed(key))[0].double()
-            weights = bit_weights(self.model.texture_encoder, evidence, self._key_seed(key))[0].double()
+            soft, weights, tries = self._best_grid(evidence, key, expected)
         else:
             soft = evidence[0].double()
         bits = "".join("1" if v > 0 else "0" for v in soft.tolist())
         if self.n_bits not in payload.SCHEMAS:
             return Detection(bits, soft.tolist(), None, None, None, None, **extra)
-        any_mark_p = float(payload.detection_pvalue(soft, weights)) if self.calibrated else None
+        # Each grid read is one more try at the false-positive rate: its p-value pays for all (Bonferroni).
+        any_mark_p = min(1.0, tries * float(payload.detection_pvalue(soft, weights))) if self.calibrated else None
         marked = any_mark_p is not None and payload.detected(any_mark_p)
         decoded = payload.decode(soft, key) if marked or expect is not None else None  # no message to report else
         if expect is not None:
-            expected = payload.encode(expect, key, self.n_bits)
             if self.calibrated:
-                p_value = float(payload.match_pvalue(soft, expected, weights))
+                p_value = min(1.0, tries * float(payload.match_pvalue(soft, expected, weights)))
             else:
                 p_value = payload.binomial_pvalue(int(((soft > 0).float() == expected).sum()), self.n_bits)
             # A mark of another message still correlates with this one: the code must read this one.
@@ -342,6 +348,27 @@ class Watermarker:
         message = decoded.message if detected or marked else None
         return Detection(bits, soft.tolist(), p_value, detected, message,
                          decoded.errors_corrected if message is not None else None, **extra)
+
+    def _best_grid(self, evidence: torch.Tensor, key, expected) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """Soft bits and cell weights of the cell grid (of those `read` put side by side) whose mark is
+        likeliest: the smallest p-value of any mark (or, with an `expected` message, of a match), and
+        the number of grids tried."""
+        from . import payload
+        from .models.spread import bit_weights, soft_bits
+
+        encoder, key_seed = self.model.texture_encoder, self._key_seed(key)
+        sizes = [encoder.chips ** 2, encoder.coarse_chips ** 2]  # the model's grid, then the coarse one
+        if not encoder.coarse_chips or evidence.shape[1] != sum(sizes):  # the model's grid alone (`grids_to_read`)
+            sizes = [evidence.shape[1]]
+        best = None
+        for sums in torch.split(evidence, sizes, dim=1):
+            soft = soft_bits(encoder, sums, key_seed)[0].double()
+            weights = bit_weights(encoder, sums, key_seed)[0].double()
+            p = (payload.match_pvalue(soft, expected, weights) if expected is not None
+                 else payload.detection_pvalue(soft, weights))
+            if best is None or float(p) < best[0]:
+                best = (float(p), soft, weights)
+        return best[1], best[2], len(sizes)
 
     @property
     def informed(self) -> bool:
@@ -424,9 +451,26 @@ class Watermarker:
         """Matched-filter cell sums (spread models) or decoder logits of one picture (1, 3, H, W)."""
         from .pipeline import read_bits, spread_evidence
 
-        if self.calibrated:
-            return spread_evidence(self.model, original, picture, camera)[0].cpu()
+        if self.calibrated:  # every grid a mark may use on this mesh, side by side (`decide` splits them)
+            grids = self.model.texture_encoder.grids_to_read(*_textured_geometry(original))
+            return spread_evidence(self.model, original, picture, camera, grids=grids)[0].cpu()
         return read_bits(self.model, original, picture, camera)[0].cpu()
+
+
+def _textured_geometry(batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Positions, textured faces and uvs of a prepared original (a one-mesh MeshBatch)."""
+    faces = batch.faces[0] if batch.faces.dim() == 3 else batch.faces
+    material = batch.face_material[0] if batch.face_material.dim() == 2 else batch.face_material
+    textured = torch.tensor([t is not None for t in batch.textures], device=material.device)
+    return batch.positions[0], faces[textured[material.long()]], batch.uvs[0]
+
+
+def _textured_faces(mesh) -> torch.Tensor:
+    """The faces (F', 3) of a Mesh whose material has a texture (the ones a texture mark lies on)."""
+    textured = torch.tensor([m.texture is not None for m in mesh.materials])
+    if mesh.face_material is None:
+        return mesh.faces if bool(textured.any()) else mesh.faces[:0]
+    return mesh.faces[textured[mesh.face_material.long()]]
 
 
 def _camera_from_metadata(text: str, device, name: str = "picture"):

@@ -18,7 +18,7 @@ from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
 from .metrics import visibility
 from .models import WatermarkModel
-from .pipeline import run_pass
+from .pipeline import batch_mark_grid, run_pass
 from .render import MeshRenderer
 
 
@@ -114,7 +114,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         with torch.no_grad():
             if watermarker.calibrated:
                 normals_marked, uvs_marked = normals, uvs
-                texture_marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None))
+                texture_marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None),
+                                                    batch_mark_grid(model, batch))  # as `meshseal embed` marks it
             else:
                 normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
             cameras, lights = sample_views(views, sampler, generator)

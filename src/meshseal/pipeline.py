@@ -294,10 +294,21 @@ def take_off_linear_light(residual: torch.Tensor, expected: torch.Tensor, pixel:
     return residual, weight.sqrt()[:, None] * unit
 
 
+def batch_mark_grid(model: WatermarkModel, batch: dict, index: int = 0) -> int | None:
+    """The cell grid a spread mark uses on item `index` of a dataset batch (its padding left out), as
+    `Watermarker.embed` picks it for that mesh."""
+    n_verts, n_faces = int(batch["n_verts"][index]), int(batch["n_faces"][index])
+    return model.mark_grid(batch["positions"][index, :n_verts], batch["faces"][index, :n_faces],
+                           batch["uvs"][index, :n_verts])
+
+
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
-                    whitening: dict | None = None, footprint: bool = True, brightness: bool = True) -> torch.Tensor:
+                    whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
+                    grids: tuple[int, ...] | None = None) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
     original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
+    `grids` (default the model's own grid alone): the cell grids to read, their sums side by side
+    (B, sum of C*C), the residual computed once.
 
     With `footprint` (the default) each picture's sampling is estimated first (`picture_footprint`):
     the prediction subtracted and the template the residual is matched against are both the
@@ -342,12 +353,14 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         if bool(usable.any()):
             whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **(whitening or {}))
         whitened = whitened * gain
+        grids = grids or (encoder.chips,)
         point = torch.ones(n_images, dtype=torch.bool) if sampled is None else sampled.sigma.isnan()
         at_point = point.to(found.image_index.device).index_select(0, found.image_index)
-        sums = whitened.new_zeros(n_images, encoder.chips ** 2)
+        sums = whitened.new_zeros(n_images, sum(chips ** 2 for chips in grids))
         if bool(point.any()):
             amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
-            sums = cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images)
+            sums = torch.cat([cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images,
+                                        chips) for chips in grids], dim=1)
         if bool(point.all()):
             return sums
         # The template under an area footprint: the adjoint of (blur, then average each pixel's
@@ -360,7 +373,8 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         spread = canvas.reshape(-1).index_select(0, sampled.parent) / sampled.scale ** 2  # the adjoint of the mean
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
-        return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images)
+        return sums + torch.cat([cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, chips)
+                                 for chips in grids], dim=1)
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,

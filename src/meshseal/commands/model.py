@@ -241,7 +241,7 @@ def run_embed(args) -> int:
     written = save(marked, args.output)
     report, renders = embed_report(mesh, marked, args.views)
     report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": args.strength,
-               "keyed": key is not None, "output": str(args.output)}
+               "cells": watermarker.mark_grid(mesh), "keyed": key is not None, "output": str(args.output)}
     if args.preview is not None:
         write_preview(args.preview, mesh, marked, renders)
         report["preview"] = str(args.preview)
@@ -250,7 +250,8 @@ def run_embed(args) -> int:
     else:
         print(f"wrote {', '.join(str(p) for p in written)}")
         psnr_texture = report["psnr_texture"]
-        print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB, normal change "
+        cells = f" ({report['cells']}^2 cells)" if report["cells"] else ""
+        print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB{cells}, normal change "
               f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels")
         if args.views:
             print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {report['psnr_object']:.2f} dB, "

@@ -1,6 +1,8 @@
 """A keyed spread-spectrum mark in texture space, read by a matched filter after un-rendering.
 
-The texture's UV square is cut into `chips` x `chips` cells. A fixed pseudo-random permutation (the
+The texture's UV square is cut into `chips` x `chips` cells (`coarse_chips` x `coarse_chips` on a mesh
+whose texture is so minified in a standard view that a finer cell would be under `coarse_below` pixels:
+`grid_for`; on such a mesh detection reads both grids and pays for the two tries in its p-value). A fixed pseudo-random permutation (the
 model's pattern seed) gives every cell to one of the n bits and a random sign, so each bit is spread
 over cells all over the surface and any view shows some of every bit. The mark adds, at each texel,
 `sign x (+-1 for the bit) x amplitude` along one colour direction, bilinearly interpolated between
@@ -28,10 +30,14 @@ mark it grows with the square root of the cells seen.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+READ_BOTH_BELOW = 1.1  # detection reads both grids up to this many times the embedding's threshold
+PIXEL_AT_OBJECT = 2 * 3.5 * math.tan(math.radians(30)) / 256  # a 256^2 picture's pixel at a radius-1 object 3.5 away, 60-degree view
 COLOURS = {"blue-yellow": (1.0, 1.0, -2.0), "grey": (1.0, 1.0, 1.0), "red-green": (1.0, -1.0, 0.0)}
 
 
@@ -51,34 +57,56 @@ class SpreadSpectrumEncoder(nn.Module):
     cell-to-bit assignment and the cell signs are buffers drawn from `seed`)."""
 
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
-                 window: int = 5, floor: float = 0.3, seed: int = 0):
+                 window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6):
         super().__init__()
         if colour not in COLOURS:
             raise ValueError(f"mark colour must be one of {', '.join(COLOURS)}")
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
-        self.seed = seed
-        assign, sign = self._draw(seed)
+        self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
+        assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
         self.register_buffer("colour", F.normalize(torch.tensor(COLOURS[colour]), dim=0))
-        self._keyed: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._keyed: dict[tuple[int | None, int], tuple[torch.Tensor, torch.Tensor]] = {}
         self._amplitudes: list[tuple[torch.Tensor, int, torch.Tensor]] = []
 
-    def _draw(self, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def grid_for(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> int:
+        """The cell grid of a mesh's mark: `coarse_chips` where `chips` cells would be under
+        `coarse_below` px in a standard view (`cell_pixels`), where a pose error of hundredths of a
+        pixel already hides them; else `chips`."""
+        if self.coarse_chips and cell_pixels(positions, faces, uvs, self.chips) < self.coarse_below:
+            return self.coarse_chips
+        return self.chips
+
+    def grids_to_read(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> tuple[int, ...]:
+        """The grids detection reads on a mesh, the model's own first: `grid_for`'s and, where that is
+        the coarse one or nearly (cells under READ_BOTH_BELOW x `coarse_below`, so that a mesh at the
+        threshold is read either way), the model's own too (marks made before the coarse grid)."""
+        if self.coarse_chips and cell_pixels(positions, faces, uvs, self.chips) < READ_BOTH_BELOW * self.coarse_below:
+            return (self.chips, self.coarse_chips)
+        return (self.chips,)
+
+    def _draw(self, seed: int, chips: int) -> tuple[torch.Tensor, torch.Tensor]:
         generator = torch.Generator().manual_seed(seed)
-        cells = self.chips * self.chips
+        cells = chips * chips
         assign = torch.randperm(cells, generator=generator) % self.n_bits
         return assign, torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
 
-    def pattern(self, key_seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The cell-to-bit assignment (C*C,) and cell signs (C*C,): the model's own (`key_seed` None,
-        as training uses) or the one a secret key draws (`payload.key_seed`), so that a mark made
-        under one key is noise to the matched filter under any other."""
-        if key_seed is None:
+    def pattern(self, key_seed: int | None = None, chips: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The cell-to-bit assignment (C*C,) and cell signs (C*C,) of a chips x chips grid (the model's
+        own by default): the model's pattern (`key_seed` None, as training uses) or the one a secret key
+        draws (`payload.key_seed`), so that a mark made under one key is noise to the matched filter
+        under any other. Each grid draws its own."""
+        chips = chips or self.chips
+        if key_seed is None and chips == self.chips:
             return self.assign, self.sign
-        if key_seed not in self._keyed:
-            self._keyed = {key_seed: self._draw((self.seed * 1_000_003 + key_seed) % 2 ** 63)}
-        assign, sign = self._keyed[key_seed]
+        if (key_seed, chips) not in self._keyed:
+            seed = self.seed if key_seed is None else (self.seed * 1_000_003 + key_seed) % 2 ** 63
+            if chips != self.chips:
+                seed = (seed * 1_000_033 + chips) % 2 ** 63
+            kept = {k: v for k, v in self._keyed.items() if k[0] == key_seed}  # this key's other grids stay
+            self._keyed = kept | {(key_seed, chips): self._draw(seed, chips)}
+        assign, sign = self._keyed[(key_seed, chips)]
         return assign.to(self.assign.device), sign.to(self.sign.device)
 
     def amplitude(self, texture: torch.Tensor) -> torch.Tensor:
@@ -95,18 +123,20 @@ class SpreadSpectrumEncoder(nn.Module):
         self._amplitudes = [(texture, texture._version, field)] + self._amplitudes[:3]
         return field
 
-    def cells(self, message: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
-        """Bits (B, N) in {0, 1} -> signed cell values (B, 1, C, C)."""
-        assign, sign = self.pattern(key_seed)
+    def cells(self, message: torch.Tensor, key_seed: int | None = None, chips: int | None = None) -> torch.Tensor:
+        """Bits (B, N) in {0, 1} -> signed cell values (B, 1, C, C) of the chips x chips grid."""
+        chips = chips or self.chips
+        assign, sign = self.pattern(key_seed, chips)
         values = sign * (2.0 * message - 1.0).index_select(1, assign)
-        return values.reshape(-1, 1, self.chips, self.chips)
+        return values.reshape(-1, 1, chips, chips)
 
     def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
-                key_seed: int | None = None) -> torch.Tensor:
-        """texture (B, 3, H, W) in [0, 1], message (B, N) -> marked texture. The residual's RMS is
-        `strength` times that of the model's target texture PSNR (strength 2: 6 dB louder)."""
-        pattern = F.interpolate(self.cells(message, key_seed).to(texture), size=texture.shape[-2:], mode="bilinear",
-                                align_corners=False)
+                key_seed: int | None = None, chips: int | None = None) -> torch.Tensor:
+        """texture (B, 3, H, W) in [0, 1], message (B, N) -> marked texture on the chips x chips grid
+        (default the model's own; `grid_for` picks a mesh's). The residual's RMS is `strength` times
+        that of the model's target texture PSNR (strength 2: 6 dB louder)."""
+        pattern = F.interpolate(self.cells(message, key_seed, chips).to(texture), size=texture.shape[-2:],
+                                mode="bilinear", align_corners=False)
         residual = self.amplitude(texture) * pattern
         rms = strength * 10.0 ** (-self.texture_psnr / 20.0)
         residual = residual * rms / residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt().clamp_min(1e-8)
@@ -169,14 +199,14 @@ def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
 
 
 def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch.Tensor, image_index: torch.Tensor,
-              n_images: int) -> torch.Tensor:
+              n_images: int, chips: int | None = None) -> torch.Tensor:
     """The matched filter's evidence per cell (n_images, C*C): the residual at covered pixels,
     projected on the mark's colour, whitened and weighted by the mark's expected amplitude (P,),
     accumulated into the cells by the embedding's bilinear weights. Cell sums of several pictures of
     one asset add up (pooling). uv (P, 2): the pixels' texture coordinates; image_index (P,): which
-    picture each pixel belongs to.
+    picture each pixel belongs to; chips: the grid (default the model's own).
     """
-    cells = encoder.chips
+    cells = chips or encoder.chips
     wrapped = uv - torch.floor(uv)
     x, y = wrapped[:, 0] * cells - 0.5, (1.0 - wrapped[:, 1]) * cells - 0.5
     x0, y0 = torch.floor(x), torch.floor(y)
@@ -190,8 +220,9 @@ def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch
 
 def soft_bits(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
     """Cell sums (B, C*C) -> soft bits z (B, N), about N(0, 1) per bit without a mark under this key:
-    z = sum(sign x cell) / sqrt(sum(cell^2)) over the bit's cells."""
-    assign, sign = encoder.pattern(key_seed)
+    z = sum(sign x cell) / sqrt(sum(cell^2)) over the bit's cells. The grid is the one whose C*C the
+    sums have."""
+    assign, sign = encoder.pattern(key_seed, math.isqrt(sums.shape[1]))
     signed = sums * sign.to(sums)
     assign = assign.to(sums.device)
     total = signed.new_zeros(len(sums), encoder.n_bits).index_add(1, assign, signed)
@@ -203,7 +234,7 @@ def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: in
     """Each bit's cell weights (B, N, M) for `payload`'s exact null: |cell| / sqrt(sum(cell^2)) over
     the bit's cells, zero-padded to M, the most cells any bit has. Given the picture, z_b =
     sum_i w_bi s_i with the key's cell signs s_i, independent fair coins without a mark."""
-    assign, _ = encoder.pattern(key_seed)
+    assign, _ = encoder.pattern(key_seed, math.isqrt(sums.shape[1]))
     assign = assign.to(sums.device)
     order = torch.argsort(assign, stable=True)
     counts = torch.bincount(assign, minlength=encoder.n_bits)
@@ -215,3 +246,26 @@ def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: in
         weights = sums.new_zeros(len(sums), encoder.n_bits, int(counts.max()))
         weights[:, assign[order], slot] = grouped
     return weights / weights.pow(2).sum(-1, keepdim=True).sqrt().clamp_min(1e-30)
+
+
+def cell_pixels(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, chips: int) -> float:
+    """How wide one of a chips x chips grid's cells is, in pixels, on a mesh (positions (V, 3), faces
+    (F, 3) of its textured triangles, uvs (V, 2)) in a standard view: a 256^2 picture of the object
+    scaled to radius 1 (about its box's centre) from 3.5 away with a 60-degree field. The
+    area-weighted median over faces of sqrt(surface area / UV area): independent of the mesh's units."""
+    positions, uvs, faces = positions.detach().double().cpu(), uvs.detach().double().cpu(), faces.cpu().long()
+    if len(faces) == 0:
+        return float("inf")
+    radius = float((positions - (positions.amax(0) + positions.amin(0)) / 2).norm(dim=1).max())
+    corners = positions[faces]
+    surface = 0.5 * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=1)
+    first, second = uvs[faces[:, 1]] - uvs[faces[:, 0]], uvs[faces[:, 2]] - uvs[faces[:, 0]]
+    uv_area = 0.5 * (first[:, 0] * second[:, 1] - first[:, 1] * second[:, 0]).abs()
+    usable = (uv_area > 1e-12) & (surface > 0)
+    if not bool(usable.any()) or radius <= 0:
+        return float("inf")
+    stretch, weight = (surface[usable] / uv_area[usable]).sqrt(), surface[usable]
+    order = torch.argsort(stretch)
+    cumulative = torch.cumsum(weight[order], 0)
+    median = stretch[order][min(int(torch.searchsorted(cumulative, cumulative[-1] / 2)), len(order) - 1)]
+    return float(median) / radius / chips / PIXEL_AT_OBJECT

@@ -32,6 +32,8 @@ class ModelConfig:
     texture_tile: int = 0  # > 0: a learned periodic carrier of this period (in working-size texels)
     texture_tile_channels: int = 8
     chips: int = 128  # spread: cells per side of the UV square, each carrying one bit with a random sign
+    coarse_chips: int = 64  # spread: the grid of meshes whose `chips` cells would be under coarse_below px (0: never)
+    coarse_below: float = 0.6  # spread: ... in a standard 256^2 view (models.spread.cell_pixels)
     mark_colour: str = "blue-yellow"  # spread: colour direction of the mark
     texture_psnr: float = 40.0  # spread: texture PSNR of the mark at strength 1
     activity_window: int = 5  # spread: window of the just-noticeable-difference mask, in texels
@@ -82,7 +84,7 @@ class WatermarkModel(nn.Module):
             elif config.texture_encoder == "spread":
                 self.texture_encoder = SpreadSpectrumEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
                                                              config.activity_window, config.activity_floor,
-                                                             config.pattern_seed)
+                                                             config.pattern_seed, config.coarse_chips, config.coarse_below)
             elif config.texture_encoder == "unet":
                 self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
                 self.texture_encoder.rms = config.texture_rms
@@ -130,14 +132,20 @@ class WatermarkModel(nn.Module):
         return normals, uvs, texture
 
     def mark_texture(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
-                     key_seed: int | None = None) -> torch.Tensor:
-        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread mark and
-        `key_seed` picks its keyed pattern."""
+                     key_seed: int | None = None, chips: int | None = None) -> torch.Tensor:
+        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread mark,
+        `key_seed` picks its keyed pattern and `chips` its cell grid (the mesh's: `mark_grid`)."""
         if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
-            return self.texture_encoder(texture, message, strength, key_seed)
+            return self.texture_encoder(texture, message, strength, key_seed, chips)
         if strength != 1.0:
             raise ValueError("only spread-spectrum models take a strength (learned marks have a trained power)")
         return self.texture_encoder(texture, message)
+
+    def mark_grid(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> int | None:
+        """The cell grid a spread mark uses on a mesh (its textured faces); None for learned marks."""
+        if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
+            return self.texture_encoder.grid_for(positions, faces, uvs)
+        return None
 
     @property
     def informed(self) -> bool:
