@@ -66,8 +66,11 @@ def main() -> int:
     config = json.loads(metadata["config"])
     train_config = json.loads(metadata.get("train_config", "{}"))
     if config["decoder"] == "matched":
-        architecture = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square, "
-                        f"each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
+        coarse = config.get("coarse_chips", 0)
+        coarse_text = (f" ({coarse}^2 on a mesh whose {config['chips']}^2 cells would be under {config['coarse_below']} px "
+                       f"in a 256^2 view: a minified texture; detection reads both grids there)") if coarse else ""
+        architecture = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
+                        f"{coarse_text}, each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
                         f"shaped by local texture activity (window {config['activity_window']}, floor "
                         f"{config['activity_floor']}) and scaled to texture PSNR {config['texture_psnr']} dB at strength 1; "
                         "read by a matched filter (the residual whitened in the picture) after un-rendering the picture onto the "
@@ -127,7 +130,9 @@ def main() -> int:
                   f"**{registered['bit_acc']:.4f}** (std {registered['bit_acc_std']:.4f}; "
                   f"{registered['bit_acc_known_camera']:.4f} with the true camera), registration success (pose error < "
                   f"0.5 px or IoU >= 0.95) {registered['registration_success']:.3f}, pose error median {pose['median']} px, "
-                  f"90th percentile {pose['p90']} px, {registered['seconds_per_picture']:.1f} s per picture."]
+                  f"90th percentile {pose['p90']} px, {registered['seconds_per_picture']:.1f} s per picture."
+                  + (" The table above marks and reads every mesh on the model's own grid; this row marks each mesh "
+                     "as `meshseal embed` does." if config.get("coarse_chips") else "")]
     lines += ["", "Object PSNR, SSIM and FLIP compare the marked and original mesh rendered from the same view and light "
               "over the object's pixels (8-bit values); frame PSNR is over the whole frame, as the seed paper reports "
               "(the background inflates it). Seed paper (Table 4/5): 0.897 bit accuracy at 8 bits and 0.636 at 32 bits "
