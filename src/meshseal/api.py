@@ -354,21 +354,19 @@ class Watermarker:
         likeliest: the smallest p-value of any mark (or, with an `expected` message, of a match), and
         the number of grids tried."""
         from . import payload
-        from .models.spread import bit_weights, soft_bits
+        from .models.spread import bit_weights, soft_bits, split_grids
 
         encoder, key_seed = self.model.texture_encoder, self._key_seed(key)
-        sizes = [encoder.chips ** 2, encoder.coarse_chips ** 2]  # the model's grid, then the coarse one
-        if not encoder.coarse_chips or evidence.shape[1] != sum(sizes):  # the model's grid alone (`grids_to_read`)
-            sizes = [evidence.shape[1]]
+        parts = split_grids(encoder, evidence)
         best = None
-        for sums in torch.split(evidence, sizes, dim=1):
+        for sums in parts:
             soft = soft_bits(encoder, sums, key_seed)[0].double()
             weights = bit_weights(encoder, sums, key_seed)[0].double()
             p = (payload.match_pvalue(soft, expected, weights) if expected is not None
                  else payload.detection_pvalue(soft, weights))
             if best is None or float(p) < best[0]:
                 best = (float(p), soft, weights)
-        return best[1], best[2], len(sizes)
+        return best[1], best[2], len(parts)
 
     @property
     def informed(self) -> bool:

@@ -359,8 +359,7 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         sums = whitened.new_zeros(n_images, sum(chips ** 2 for chips in grids))
         if bool(point.any()):
             amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
-            sums = torch.cat([cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images,
-                                        chips) for chips in grids], dim=1)
+            sums = cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images, grids)
         if bool(point.all()):
             return sums
         # The template under an area footprint: the adjoint of (blur, then average each pixel's
@@ -373,8 +372,7 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         spread = canvas.reshape(-1).index_select(0, sampled.parent) / sampled.scale ** 2  # the adjoint of the mean
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
-        return sums + torch.cat([cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, chips)
-                                 for chips in grids], dim=1)
+        return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, grids)
 
 
 def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer: MeshRenderer,

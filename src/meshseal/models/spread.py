@@ -199,14 +199,18 @@ def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
 
 
 def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch.Tensor, image_index: torch.Tensor,
-              n_images: int, chips: int | None = None) -> torch.Tensor:
+              n_images: int, grids: tuple[int, ...] | None = None) -> torch.Tensor:
     """The matched filter's evidence per cell (n_images, C*C): the residual at covered pixels,
     projected on the mark's colour, whitened and weighted by the mark's expected amplitude (P,),
     accumulated into the cells by the embedding's bilinear weights. Cell sums of several pictures of
     one asset add up (pooling). uv (P, 2): the pixels' texture coordinates; image_index (P,): which
-    picture each pixel belongs to; chips: the grid (default the model's own).
+    picture each pixel belongs to; grids: the cell grids (default the model's own), their sums side by
+    side (`split_grids` parts them).
     """
-    cells = chips or encoder.chips
+    grids = grids or (encoder.chips,)
+    if len(grids) > 1:
+        return torch.cat([cell_sums(encoder, projected, uv, image_index, n_images, (chips,)) for chips in grids], dim=1)
+    cells = grids[0]
     wrapped = uv - torch.floor(uv)
     x, y = wrapped[:, 0] * cells - 0.5, (1.0 - wrapped[:, 1]) * cells - 0.5
     x0, y0 = torch.floor(x), torch.floor(y)
@@ -216,6 +220,15 @@ def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch
         cell = ((y0 + dy).long() % cells) * cells + (x0 + dx).long() % cells
         sums.index_add_(0, image_index * cells * cells + cell, weight * projected)
     return sums.reshape(n_images, -1)
+
+
+def split_grids(encoder: SpreadSpectrumEncoder, sums: torch.Tensor) -> list[torch.Tensor]:
+    """Cell sums of one or both grids side by side (`grids_to_read`: the model's own, then the coarse
+    one) -> each grid's sums (B, C*C)."""
+    sizes = [encoder.chips ** 2, encoder.coarse_chips ** 2]
+    if not encoder.coarse_chips or sums.shape[1] != sum(sizes):  # the model's grid alone
+        return [sums]
+    return list(torch.split(sums, sizes, dim=1))
 
 
 def soft_bits(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
