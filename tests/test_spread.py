@@ -334,3 +334,47 @@ def test_a_minified_texture_is_marked_on_coarser_cells_and_either_grid_is_read()
         found = detection(mesh)
         assert found.detected and found.message == "ab42"
     assert not detection(small).detected
+
+
+def test_a_magnified_texture_is_marked_on_finer_cells_of_a_resampled_texture_and_either_grid_is_read():
+    """Where 128^2 cells would be several pixels wide (a small part of the texture stretched over the
+    surface), `embed` marks on 512^2 cells, resampling a smaller texture up to carry them; the figures
+    measure the mark alone, a picture of it is read, and so is a mark on the model's own grid."""
+    from dataclasses import replace
+
+    from meshseal import payload
+    from meshseal.api import Watermarker
+    from meshseal.commands.model import embed_report
+    from meshseal.models.spread import carrier, resampled_like
+
+    bunny = load(FIXTURES / "bunny.glb")
+    large = replace(bunny, uvs=bunny.uvs * 0.25 + 0.3)  # a quarter of the texture, 4x magnified
+    model = WatermarkModel(SPREAD)
+    encoder = model.texture_encoder
+    assert model.mark_grid(large.positions, large.faces, large.uvs) == 512
+    assert encoder.grids_to_read(large.positions, large.faces, large.uvs) == (128, 512)
+    texture = large.materials[0].texture.permute(2, 0, 1)[None]  # 256^2
+    assert carrier(texture, 128) is texture and carrier(texture, 512).shape[-2:] == (512, 512)
+    assert torch.equal(resampled_like(texture, texture), texture)
+
+    wm = Watermarker(model)
+    marked = wm.embed(large, "ab42")
+    assert marked.materials[0].texture.shape[:2] == (512, 512) and large.materials[0].texture.shape[:2] == (256, 256)
+    report, _ = embed_report(large, marked, views=0)
+    assert abs(report["psnr_texture"] - encoder.texture_psnr) < 1.0  # the mark's power, not the resampling's
+
+    original = wm.original(large)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
+    bits = payload.encode("ab42", None, 64)[None]
+    old_style = large.copy()
+    old_style.materials[0].texture = model.mark_texture(texture, bits, 1.0, payload.key_seed(None), 128)[0].permute(1, 2, 0)
+
+    def detection(mesh):
+        with torch.no_grad():
+            image = MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(mesh))), cameras, lights, 256, 256).image
+        return wm.decide([wm.read(_quantise(image)[0].permute(1, 2, 0).numpy(), original, camera=cameras)])
+
+    for mesh in (marked, old_style):
+        found = detection(mesh)
+        assert found.detected and found.message == "ab42"
+    assert not detection(large).detected

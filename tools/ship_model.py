@@ -66,9 +66,12 @@ def main() -> int:
     config = json.loads(metadata["config"])
     train_config = json.loads(metadata.get("train_config", "{}"))
     if config["decoder"] == "matched":
-        coarse = config.get("coarse_chips", 0)
-        coarse_text = (f" ({coarse}^2 on a mesh whose {config['chips']}^2 cells would be under {config['coarse_below']} px "
-                       f"in a 256^2 view: a minified texture; detection reads both grids there)") if coarse else ""
+        coarse, fine = config.get("coarse_chips", 0), config.get("fine_chips", 0)
+        others = ([f"{coarse}^2 on a mesh whose {config['chips']}^2 cells would be under {config['coarse_below']} px in a "
+                   "256^2 view (a minified texture)"] if coarse else []) + \
+                 ([f"{fine}^2 where they would be over {config['fine_above']} px (a magnified texture, resampled up when "
+                   "it has fewer texels)"] if fine else [])
+        coarse_text = f" ({'; '.join(others)}; detection reads both grids there)" if others else ""
         architecture = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
                         f"{coarse_text}, each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
                         f"shaped by local texture activity (window {config['activity_window']}, floor "
@@ -132,7 +135,7 @@ def main() -> int:
                   f"0.5 px or IoU >= 0.95) {registered['registration_success']:.3f}, pose error median {pose['median']} px, "
                   f"90th percentile {pose['p90']} px, {registered['seconds_per_picture']:.1f} s per picture."
                   + (" The table above marks and reads every mesh on the model's own grid; this row marks each mesh "
-                     "as `meshseal embed` does." if config.get("coarse_chips") else "")]
+                     "as `meshseal embed` does." if config.get("coarse_chips") or config.get("fine_chips") else "")]
     lines += ["", "Object PSNR, SSIM and FLIP compare the marked and original mesh rendered from the same view and light "
               "over the object's pixels (8-bit values); frame PSNR is over the whole frame, as the seed paper reports "
               "(the background inflates it). Seed paper (Table 4/5): 0.897 bit accuracy at 8 bits and 0.636 at 32 bits "

@@ -168,11 +168,13 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
 
     from ..losses import normal_angle_deg, psnr, ssim
     from ..metrics import visibility
+    from ..models.spread import resampled_like
 
     texture_psnr, shifts = [], []
     for before, after in zip(original.materials, marked.materials):
         if before.texture is not None and after.texture is not None:
-            texture_psnr.append(float(psnr(after.texture.permute(2, 0, 1)[None], before.texture.permute(2, 0, 1)[None])))
+            after_texture = after.texture.permute(2, 0, 1)[None]
+            texture_psnr.append(float(psnr(after_texture, resampled_like(before.texture.permute(2, 0, 1)[None], after_texture))))
     if original.uvs is not None and marked.uvs is not None:
         sizes = torch.tensor([max(m.texture.shape[:2]) if m.texture is not None else 0 for m in original.materials],
                              dtype=torch.float32)
@@ -206,10 +208,12 @@ def write_preview(path: Path, original, marked, renders) -> None:
     from PIL import Image
 
     from ..mesh.io import atomic_write, image_bytes
+    from ..models.spread import resampled_like
 
     rows = []
-    textures = [(a.texture, b.texture) for a, b in zip(original.materials, marked.materials) if a.texture is not None]
-    pairs = ([(textures[0][0].permute(2, 0, 1), textures[0][1].permute(2, 0, 1))] if textures else []) + [renders]
+    textures = [(a.texture.permute(2, 0, 1), b.texture.permute(2, 0, 1))
+                for a, b in zip(original.materials, marked.materials) if a.texture is not None]
+    pairs = ([(resampled_like(*textures[0]), textures[0][1])] if textures else []) + [renders]
     width = 256
     for before, after in pairs:
         before, after = (torch.nn.functional.interpolate(x[None].float(), size=(width, width), mode="area")[0]

@@ -1,8 +1,11 @@
 """A keyed spread-spectrum mark in texture space, read by a matched filter after un-rendering.
 
-The texture's UV square is cut into `chips` x `chips` cells (`coarse_chips` x `coarse_chips` on a mesh
-whose texture is so minified in a standard view that a finer cell would be under `coarse_below` pixels:
-`grid_for`; on such a mesh detection reads both grids and pays for the two tries in its p-value). A fixed pseudo-random permutation (the
+The texture's UV square is cut into `chips` x `chips` cells (`grid_for`: `coarse_chips` x
+`coarse_chips` on a mesh whose texture is so minified in a standard view that a finer cell would be
+under `coarse_below` pixels, and `fine_chips` x `fine_chips` on one whose texture is so magnified that a
+`chips` cell would be over `fine_above` pixels, where the picture would show too few cells for the
+bits; a texture with fewer texels than the grid has cells is resampled up to carry it; on such meshes
+detection reads both grids and pays for the two tries in its p-value). A fixed pseudo-random permutation (the
 model's pattern seed) gives every cell to one of the n bits and a random sign, so each bit is spread
 over cells all over the surface and any view shows some of every bit. The mark adds, at each texel,
 `sign x (+-1 for the bit) x amplitude` along one colour direction, bilinearly interpolated between
@@ -57,12 +60,14 @@ class SpreadSpectrumEncoder(nn.Module):
     cell-to-bit assignment and the cell signs are buffers drawn from `seed`)."""
 
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
-                 window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6):
+                 window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
+                 fine_chips: int = 0, fine_above: float = 2.0):
         super().__init__()
         if colour not in COLOURS:
             raise ValueError(f"mark colour must be one of {', '.join(COLOURS)}")
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
+        self.fine_chips, self.fine_above = fine_chips, fine_above
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
@@ -73,17 +78,24 @@ class SpreadSpectrumEncoder(nn.Module):
     def grid_for(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> int:
         """The cell grid of a mesh's mark: `coarse_chips` where `chips` cells would be under
         `coarse_below` px in a standard view (`cell_pixels`), where a pose error of hundredths of a
-        pixel already hides them; else `chips`."""
-        if self.coarse_chips and cell_pixels(positions, faces, uvs, self.chips) < self.coarse_below:
+        pixel already hides them; `fine_chips` where they would be over `fine_above` px, where a
+        picture of the object shows a few dozen cells for all the bits; else `chips`."""
+        width = cell_pixels(positions, faces, uvs, self.chips)
+        if self.coarse_chips and width < self.coarse_below:
             return self.coarse_chips
+        if self.fine_chips and width > self.fine_above:
+            return self.fine_chips
         return self.chips
 
     def grids_to_read(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> tuple[int, ...]:
         """The grids detection reads on a mesh, the model's own first: `grid_for`'s and, where that is
-        the coarse one or nearly (cells under READ_BOTH_BELOW x `coarse_below`, so that a mesh at the
-        threshold is read either way), the model's own too (marks made before the coarse grid)."""
-        if self.coarse_chips and cell_pixels(positions, faces, uvs, self.chips) < READ_BOTH_BELOW * self.coarse_below:
+        another grid or nearly (cells within READ_BOTH_BELOW of either threshold, so that a mesh at a
+        threshold is read either way), the model's own too (marks made before the other grids)."""
+        width = cell_pixels(positions, faces, uvs, self.chips)
+        if self.coarse_chips and width < READ_BOTH_BELOW * self.coarse_below:
             return (self.chips, self.coarse_chips)
+        if self.fine_chips and width > self.fine_above / READ_BOTH_BELOW:
+            return (self.chips, self.fine_chips)
         return (self.chips,)
 
     def _draw(self, seed: int, chips: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -134,13 +146,37 @@ class SpreadSpectrumEncoder(nn.Module):
                 key_seed: int | None = None, chips: int | None = None) -> torch.Tensor:
         """texture (B, 3, H, W) in [0, 1], message (B, N) -> marked texture on the chips x chips grid
         (default the model's own; `grid_for` picks a mesh's). The residual's RMS is `strength` times
-        that of the model's target texture PSNR (strength 2: 6 dB louder)."""
+        that of the model's target texture PSNR (strength 2: 6 dB louder). A texture with fewer texels
+        a side than the grid has cells is first resampled up (`carrier`): the marked texture is then
+        larger than the one given."""
+        texture = carrier(texture, chips or self.chips)
         pattern = F.interpolate(self.cells(message, key_seed, chips).to(texture), size=texture.shape[-2:],
                                 mode="bilinear", align_corners=False)
         residual = self.amplitude(texture) * pattern
         rms = strength * 10.0 ** (-self.texture_psnr / 20.0)
         residual = residual * rms / residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt().clamp_min(1e-8)
         return (texture + residual).clamp(0.0, 1.0)
+
+
+def carrier(texture: torch.Tensor, chips: int) -> torch.Tensor:
+    """`texture` (B, 3, H, W) with at least `chips` texels a side: as it is, or resampled up
+    (bilinear, by the smallest whole factor) so that each cell of a chips x chips grid has a texel of
+    its own. Bilinear resampling keeps the texture as a renderer's bilinear lookup shows it, up to a
+    slight smoothing within each original texel."""
+    factor = math.ceil(chips / min(texture.shape[-2:]))
+    if factor <= 1:
+        return texture
+    return F.interpolate(texture, scale_factor=factor, mode="bilinear", align_corners=False).clamp(0.0, 1.0)
+
+
+def resampled_like(texture: torch.Tensor, marked: torch.Tensor) -> torch.Tensor:
+    """An original `texture` (..., C, H, W) at the size of its `marked` copy, resampled as `carrier`
+    resampled it, so that comparing the two measures the mark alone."""
+    if texture.shape[-2:] == marked.shape[-2:]:
+        return texture
+    flat = texture.reshape(-1, *texture.shape[-3:]).float()
+    resized = F.interpolate(flat, size=marked.shape[-2:], mode="bilinear", align_corners=False).clamp(0.0, 1.0)
+    return resized.reshape(*texture.shape[:-2], *marked.shape[-2:]).to(texture.dtype)
 
 
 def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float) -> torch.Tensor:
@@ -223,12 +259,13 @@ def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch
 
 
 def split_grids(encoder: SpreadSpectrumEncoder, sums: torch.Tensor) -> list[torch.Tensor]:
-    """Cell sums of one or both grids side by side (`grids_to_read`: the model's own, then the coarse
-    one) -> each grid's sums (B, C*C)."""
-    sizes = [encoder.chips ** 2, encoder.coarse_chips ** 2]
-    if not encoder.coarse_chips or sums.shape[1] != sum(sizes):  # the model's grid alone
-        return [sums]
-    return list(torch.split(sums, sizes, dim=1))
+    """Cell sums of one grid or two side by side (`grids_to_read`: the model's own, then the coarse or
+    the fine one) -> each grid's sums (B, C*C)."""
+    for other in (encoder.coarse_chips, encoder.fine_chips):
+        sizes = [encoder.chips ** 2, other ** 2]
+        if other and sums.shape[1] == sum(sizes):
+            return list(torch.split(sums, sizes, dim=1))
+    return [sums]  # the model's grid alone
 
 
 def soft_bits(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:

@@ -34,6 +34,8 @@ class ModelConfig:
     chips: int = 128  # spread: cells per side of the UV square, each carrying one bit with a random sign
     coarse_chips: int = 64  # spread: the grid of meshes whose `chips` cells would be under coarse_below px (0: never)
     coarse_below: float = 0.6  # spread: ... in a standard 256^2 view (models.spread.cell_pixels)
+    fine_chips: int = 512  # spread: the grid of meshes whose `chips` cells would be over fine_above px (0: never)
+    fine_above: float = 2.0  # spread: ... in the same view (a texture with fewer texels is resampled up)
     mark_colour: str = "blue-yellow"  # spread: colour direction of the mark
     texture_psnr: float = 40.0  # spread: texture PSNR of the mark at strength 1
     activity_window: int = 5  # spread: window of the just-noticeable-difference mask, in texels
@@ -84,7 +86,8 @@ class WatermarkModel(nn.Module):
             elif config.texture_encoder == "spread":
                 self.texture_encoder = SpreadSpectrumEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
                                                              config.activity_window, config.activity_floor,
-                                                             config.pattern_seed, config.coarse_chips, config.coarse_below)
+                                                             config.pattern_seed, config.coarse_chips, config.coarse_below,
+                                                             config.fine_chips, config.fine_above)
             elif config.texture_encoder == "unet":
                 self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
                 self.texture_encoder.rms = config.texture_rms
