@@ -215,3 +215,21 @@ def test_train_device_errors_are_clear(dataset, tmp_path):
     assert main(["train", "--config", str(path), "--out", str(tmp_path / "run"), "--device", "no-such"]) == 2
     if not torch.cuda.is_available():
         assert main(["train", "--config", str(path), "--out", str(tmp_path / "run"), "--device", "cuda"]) == 2
+
+
+def test_camera_known_eval_reads_as_shipped_without_registering(dataset, monkeypatch):
+    """`register=False`: every picture is read once, with its true camera, never registered; the report
+    holds the camera-known figures alone, and they match the full run's."""
+    from meshseal import evaluate as E
+    from meshseal.data.dataset import MeshDataset
+
+    calls = []
+    reading = E._read_or_none
+    monkeypatch.setattr(E, "_read_or_none", lambda w, p, o, **options: calls.append(options) or reading(w, p, o, **options))
+    model, test = meshseal.load().model, MeshDataset(dataset, "test")
+    known = E.evaluate_registered(model, test, n_meshes=2, size=64, register=False)
+    assert len(calls) == 2 and all("camera" in c and not c.get("register") for c in calls)
+    assert "bit_acc" not in known and "registration_success" not in known
+    full = E.evaluate_registered(model, test, n_meshes=2, size=64)
+    assert known["bit_acc_known_camera"] == full["bit_acc_known_camera"]
+    assert known["tpr_known_camera"] == full["tpr_known_camera"]
