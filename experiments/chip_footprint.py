@@ -4,14 +4,16 @@ For each of the first N test meshes: the size in pixels of one of the shipped ma
 square cut into `chips` x `chips`) on the object, for our standard view of a 256^2 picture (the object
 normalised to its bounding sphere, seen from 3.5 radii with a 60-degree field): the area-weighted median
 over textured faces of sqrt(world area / UV area), divided by the cell count and the pixel's size
-there. With `--read`, the meshes whose cells are smaller than `--below` pixels are marked with each of
-`--chips` cell grids (everything else as shipped, texture PSNR 40 dB), rendered as
+there. With `--read`, the meshes whose cells are smaller than `--below` pixels (or, with `--above`,
+larger than that many) are marked with each of `--chips` cell grids (everything else as shipped,
+texture PSNR 40 dB; a texture with fewer texels than a grid has cells resampled up), rendered as
 experiments/registration_conditions.py renders "plain" (one seeded view, a plain background, PNG, no
 metadata), and read with the true camera and registered (on that grid alone); visibility is over the
-object's pixels. (This measured the case for `coarse_chips`: the shipped model now marks such meshes on
-64^2 cells itself.)
+object's pixels. (This measured the case for `coarse_chips` and `fine_chips`: the shipped model now
+marks such meshes on 64^2 and 512^2 cells itself.)
 
     python experiments/chip_footprint.py --data data --meshes 100 [--read --below 0.6 --chips 128 64 32]
+    python experiments/chip_footprint.py --data data --meshes 100 --read --above 2.0 --chips 128 256 512
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ def main() -> None:
     parser.add_argument("--meshes", type=int, default=100)
     parser.add_argument("--read", action="store_true", help="mark and read the meshes with small cells")
     parser.add_argument("--below", type=float, default=0.6, help="cell size (pixels) under which a mesh is read")
+    parser.add_argument("--above", type=float, default=None, help="read the meshes with cells over this many pixels instead")
     parser.add_argument("--chips", type=int, nargs="+", default=[128, 64, 32])
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -60,10 +63,13 @@ def main() -> None:
           + ", ".join(f"under {edge}: {sum(s < edge for s in sizes)}" for edge in (0.3, 0.6, 1.0)) + f" of {count}")
     if not args.read:
         return
-    small = [index for index in range(count) if sizes[index] < args.below]
+    if args.above is None:
+        small, which = [index for index in range(count) if sizes[index] < args.below], f"under {args.below}"
+    else:
+        small, which = [index for index in range(count) if sizes[index] > args.above], f"over {args.above}"
     renderer = MeshRenderer()
     textures = sorted((args.data / "textures").glob("*.png"))
-    print(f"{len(small)} meshes with cells under {args.below} px: {small}")
+    print(f"{len(small)} meshes with cells {which} px: {small}")
     print("| cells | meshes | object PSNR | object FLIP | bits, true camera | bits, registered | registration < 0.5 px | detected (FPR 1e-6) |")
     print("|---|---|---|---|---|---|---|---|")
     for chips in args.chips:
