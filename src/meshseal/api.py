@@ -396,8 +396,9 @@ class Watermarker:
         if alpha is not None:
             pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
             mask, background = alpha, np.zeros(3, dtype=np.float32)
-        else:
-            mask, background = object_mask(pixels)
+        else:  # the silhouette's edge matters only to registration
+            known = camera is not None or (original is not None and camera_text is not None and not register)
+            mask, background = object_mask(pixels, trim=not known)
         if int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
             what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"
             raise MeshsealError(f"{_name(image)}: no object found (the picture is {what})")

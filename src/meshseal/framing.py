@@ -102,7 +102,7 @@ def background_plane(image: np.ndarray, threshold: float = 0.03, rounds: int = 3
     return (design(ys, xs) @ coefficients).astype(image.dtype)
 
 
-def object_mask(image: np.ndarray, threshold: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+def object_mask(image: np.ndarray, threshold: float = 0.03, trim: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Find the object in a picture with a plain or smoothly graded background: (H, W, 3) float ->
     mask (H, W), background (3,) (the border's median colour).
 
@@ -110,7 +110,8 @@ def object_mask(image: np.ndarray, threshold: float = 0.03) -> tuple[np.ndarray,
     by keeping the largest connected components that together hold 99 % of the area, then trimmed to
     the pixels the object covers at least half (`half_covered`), as a renderer's hard raster marks
     them: the antialiased rim that any difference picks up made silhouettes half a pixel too wide, which
-    registration then matched (experiments/registration_conditions.py, docs/invisibility.md).
+    registration then matched (experiments/registration_conditions.py, docs/invisibility.md). `trim`
+    False skips that last step (a reader that only counts the object's pixels).
     """
     from scipy import ndimage
 
@@ -125,7 +126,7 @@ def object_mask(image: np.ndarray, threshold: float = 0.03) -> tuple[np.ndarray,
         cumulative = np.cumsum(sizes[order]) / sizes.sum()
         keep = order[: int(np.searchsorted(cumulative, 0.99)) + 1] + 1
         mask = np.isin(labels, keep)
-    return half_covered(image - plane, mask), background
+    return (half_covered(image - plane, mask) if trim else mask), background
 
 
 def half_covered(difference: np.ndarray, mask: np.ndarray, sigma: float = 1.5, min_contrast: float = 0.1) -> np.ndarray:
