@@ -164,6 +164,20 @@ def configure(base: TrainConfig, settings: dict, bits: int | None, budget: int, 
     return config
 
 
+def described_run(config: TrainConfig) -> dict:
+    """What identifies a run: its config's settings that differ from the defaults (so that a knob
+    added to the code later, at a default, leaves the keys of finished runs as they were)."""
+    defaults = TrainConfig().to_dict()
+    described = {}
+    for section, values in (config.to_dict() | {"name": None}).items():
+        if isinstance(values, dict):
+            described[section] = {k: v for k, v in values.items() if defaults.get(section, {}).get(k, object()) != v}
+        elif defaults.get(section, object()) != values:
+            described[section] = values
+    described.setdefault("train", {})
+    return described
+
+
 def planned(out: Path, base: TrainConfig, table: Table, row: Row, bits: int | None, budget: int,
             seed: int) -> tuple[str, TrainConfig]:
     """(key, config) of one training run; the key is the config's own hash, so tables that need the
@@ -173,7 +187,7 @@ def planned(out: Path, base: TrainConfig, table: Table, row: Row, bits: int | No
         source = next(r for r in table.rows if r.label == row.start_from)
         start = out / "runs" / planned(out, base, table, source, bits, budget, seed)[0] / "model.safetensors"
     config = configure(base, row.settings, bits, budget, seed, start)
-    described = config.to_dict() | {"name": None}
+    described = described_run(config)
     if start is not None:
         described["train"]["init_from"] = start.parent.name  # the key, not where OUT happens to be
     key = hashlib.sha1(json.dumps(described, sort_keys=True).encode()).hexdigest()[:12]
@@ -248,6 +262,13 @@ def cell(paper: float | None, ours: float | None) -> str:
     return f"{show(paper)} / **{show(ours)}**"
 
 
+def done_keys_of_seed(args, base: TrainConfig, seed: int) -> set:
+    """The distinct training runs one seed's pass over the chosen tables makes (shared runs once)."""
+    return {planned(args.out, base, table, row, bits, args.budget, seed)[0]
+            for table in TABLES if table.number in args.tables and table.number != 9
+            for row in table.rows if not row.distortion for bits in row_bits(table)}
+
+
 def report(args, base: TrainConfig, done: dict) -> str:
     lines = ["# The seed paper, re-run\n",
              f"`python experiments/paper.py --out {args.out} --budget {args.budget} --runs {args.runs} "
@@ -258,7 +279,11 @@ def report(args, base: TrainConfig, done: dict) -> str:
              "our differentiable renderer). Rendered PSNR/SSIM are over the whole frame, as the paper's; – marks a "
              "cell not run yet (or a σ of one run).\n"]
     minutes = sum(r["seconds"] for r in done.values()) / 60
-    lines.append(f"Runs finished: {len(done)}, {minutes:.0f} minutes of training and evaluation in all.\n")
+    seeds = sorted({r["seed"] for r in done.values()})
+    complete = [seed for seed in seeds if sum(r["seed"] == seed for r in done.values()) >= len(done_keys_of_seed(args, base, 0))]
+    lines.append(f"Runs finished: {len(done)}, {minutes:.0f} minutes of training and evaluation in all; every cell has "
+                 f"{len(complete)} of the {args.runs} planned run(s) (seeds {', '.join(map(str, seeds)) or 'none'} "
+                 f"started). Best, μ and σ are over the runs a cell has.\n")
     for table in TABLES:
         if table.number not in args.tables:
             continue
@@ -321,12 +346,13 @@ def bits_figure(args, base: TrainConfig, done: dict) -> str:
 
     table = TABLES[5]
     row = next(r for r in table.rows if r.label == "Texture only")
-    means, sigmas, bits_done = [], [], []
+    means, sigmas, bits_done, counts = [], [], [], []
     for bits in BITS:
         keys = (planned(args.out, base, table, row, bits, args.budget, seed)[0] for seed in range(args.runs))
         accuracies = [done[k]["metrics"]["none"]["bit_acc"] for k in keys if k in done]
         if accuracies:
             bits_done.append(bits)
+            counts.append(len(accuracies))
             means.append(np.mean(accuracies))
             sigmas.append(np.std(accuracies))
     if not bits_done:
@@ -345,7 +371,8 @@ def bits_figure(args, base: TrainConfig, done: dict) -> str:
     figure.tight_layout()
     figure.savefig(args.out / "bits.png", dpi=120)
     plt.close(figure)
-    return f"![bit accuracy against message length](bits.png) (texture only, {args.runs} run(s) per length)"
+    runs = f"{min(counts)}" if min(counts) == max(counts) else f"{min(counts)}-{max(counts)}"
+    return f"![bit accuracy against message length](bits.png) (texture only, {runs} of {args.runs} run(s) per length)"
 
 
 def main() -> None:
