@@ -297,12 +297,35 @@ def test_the_mark_mask_is_kept_only_while_the_texture_is_unchanged():
     assert encoder.amplitude(texture) is not second  # with gradients (training): never kept
 
 
+def _assert_read_on_either_grid(wm, mesh, marked):
+    """Pictures (seeded view, true camera) of `marked` (`embed`'s "ab42" on the mesh's own grid) and of
+    the same message on the model's 128^2 grid (a mark made before other grids) are read as "ab42"; a
+    picture of the clean `mesh` is not detected."""
+    from meshseal import payload
+
+    original = wm.original(mesh)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
+    bits = payload.encode("ab42", None, 64)[None]
+    texture = mesh.materials[0].texture.permute(2, 0, 1)[None]
+    old_style = mesh.copy()
+    old_style.materials[0].texture = wm.model.mark_texture(texture, bits, 1.0, payload.key_seed(None), 128)[0].permute(1, 2, 0)
+
+    def detection(shown):
+        with torch.no_grad():
+            image = MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(shown))), cameras, lights, 256, 256).image
+        return wm.decide([wm.read(_quantise(image)[0].permute(1, 2, 0).numpy(), original, camera=cameras)])
+
+    for shown in (marked, old_style):
+        found = detection(shown)
+        assert found.detected and found.message == "ab42"
+    assert not detection(mesh).detected
+
+
 def test_a_minified_texture_is_marked_on_coarser_cells_and_either_grid_is_read():
     """Where 128^2 cells would be a fraction of a pixel, `embed` marks on 64^2 cells; detection reads both
     grids there, so a mark on the model's own grid (made before) is still found, and a clean picture is not."""
     from dataclasses import replace
 
-    from meshseal import payload
     from meshseal.api import Watermarker
     from meshseal.models.spread import cell_pixels
 
@@ -318,22 +341,7 @@ def test_a_minified_texture_is_marked_on_coarser_cells_and_either_grid_is_read()
     assert abs(cell_pixels(small.positions * 37 + 5, small.faces, small.uvs, 128) - base) < 1e-5 * base  # any units
 
     wm = Watermarker(model)
-    original = wm.original(small)
-    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
-    bits = payload.encode("ab42", None, 64)[None]
-    texture = small.materials[0].texture.permute(2, 0, 1)[None]
-    old_style = small.copy()
-    old_style.materials[0].texture = model.mark_texture(texture, bits, 1.0, payload.key_seed(None), 128)[0].permute(1, 2, 0)
-
-    def detection(mesh):
-        with torch.no_grad():
-            image = MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(mesh))), cameras, lights, 256, 256).image
-        return wm.decide([wm.read(_quantise(image)[0].permute(1, 2, 0).numpy(), original, camera=cameras)])
-
-    for mesh in (wm.embed(small, "ab42"), old_style):
-        found = detection(mesh)
-        assert found.detected and found.message == "ab42"
-    assert not detection(small).detected
+    _assert_read_on_either_grid(wm, small, wm.embed(small, "ab42"))
 
 
 def test_a_magnified_texture_is_marked_on_finer_cells_of_a_resampled_texture_and_either_grid_is_read():
@@ -342,7 +350,6 @@ def test_a_magnified_texture_is_marked_on_finer_cells_of_a_resampled_texture_and
     measure the mark alone, a picture of it is read, and so is a mark on the model's own grid."""
     from dataclasses import replace
 
-    from meshseal import payload
     from meshseal.api import Watermarker
     from meshseal.commands.model import embed_report
     from meshseal.models.spread import carrier, resampled_like
@@ -363,18 +370,4 @@ def test_a_magnified_texture_is_marked_on_finer_cells_of_a_resampled_texture_and
     report, _ = embed_report(large, marked, views=0)
     assert abs(report["psnr_texture"] - encoder.texture_psnr) < 1.0  # the mark's power, not the resampling's
 
-    original = wm.original(large)
-    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
-    bits = payload.encode("ab42", None, 64)[None]
-    old_style = large.copy()
-    old_style.materials[0].texture = model.mark_texture(texture, bits, 1.0, payload.key_seed(None), 128)[0].permute(1, 2, 0)
-
-    def detection(mesh):
-        with torch.no_grad():
-            image = MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(mesh))), cameras, lights, 256, 256).image
-        return wm.decide([wm.read(_quantise(image)[0].permute(1, 2, 0).numpy(), original, camera=cameras)])
-
-    for mesh in (marked, old_style):
-        found = detection(mesh)
-        assert found.detected and found.message == "ab42"
-    assert not detection(large).detected
+    _assert_read_on_either_grid(wm, large, marked)

@@ -25,10 +25,6 @@ from meshseal.models.io import load_model, read_metadata
 WEIGHTS = Path(__file__).resolve().parents[1] / "src" / "meshseal" / "weights"
 
 
-def config_of(metadata: dict) -> dict:
-    return json.loads(metadata["config"])
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", type=Path, required=True, help="training run folder (has model.safetensors)")
@@ -58,7 +54,7 @@ def main() -> int:
                                distortions_3d=d3, distortions_2d=d2, unrender_jitter=jitter)
         print(label, json.dumps(rows[label]), flush=True)
     registered, shipped = None, None
-    if model.informed and config_of(metadata)["decoder"] == "matched":
+    if model.informed and model.config.decoder == "matched":
         torch.manual_seed(args.seed)  # the whole split as `meshseal embed` marks it, read with the camera known
         shipped = evaluate_registered(model, dataset, None, args.seed, args.size, "seed", views=args.views, register=False)
         print("as shipped", json.dumps(shipped), flush=True)
@@ -71,7 +67,7 @@ def main() -> int:
     WEIGHTS.mkdir(parents=True, exist_ok=True)
     target = WEIGHTS / f"{args.name}.safetensors"
     shutil.copyfile(source, target)
-    config = config_of(metadata)
+    config = json.loads(metadata["config"])
     train_config = json.loads(metadata.get("train_config", "{}"))
     if config["decoder"] == "matched":
         coarse, fine = config.get("coarse_chips", 0), config.get("fine_chips", 0)

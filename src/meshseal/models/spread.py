@@ -80,21 +80,20 @@ class SpreadSpectrumEncoder(nn.Module):
         `coarse_below` px in a standard view (`cell_pixels`), where a pose error of hundredths of a
         pixel already hides them; `fine_chips` where they would be over `fine_above` px, where a
         picture of the object shows a few dozen cells for all the bits; else `chips`."""
-        width = cell_pixels(positions, faces, uvs, self.chips)
-        if self.coarse_chips and width < self.coarse_below:
-            return self.coarse_chips
-        if self.fine_chips and width > self.fine_above:
-            return self.fine_chips
-        return self.chips
+        return self._grids(cell_pixels(positions, faces, uvs, self.chips), 1.0)[-1]
 
     def grids_to_read(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> tuple[int, ...]:
         """The grids detection reads on a mesh, the model's own first: `grid_for`'s and, where that is
         another grid or nearly (cells within READ_BOTH_BELOW of either threshold, so that a mesh at a
         threshold is read either way), the model's own too (marks made before the other grids)."""
-        width = cell_pixels(positions, faces, uvs, self.chips)
-        if self.coarse_chips and width < READ_BOTH_BELOW * self.coarse_below:
+        return self._grids(cell_pixels(positions, faces, uvs, self.chips), READ_BOTH_BELOW)
+
+    def _grids(self, width: float, slack: float) -> tuple[int, ...]:
+        """The model's grid, then the other one for cells `width` px wide, the thresholds widened by
+        `slack`."""
+        if self.coarse_chips and width < slack * self.coarse_below:
             return (self.chips, self.coarse_chips)
-        if self.fine_chips and width > self.fine_above / READ_BOTH_BELOW:
+        if self.fine_chips and width > self.fine_above / slack:
             return (self.chips, self.fine_chips)
         return (self.chips,)
 
@@ -164,19 +163,22 @@ def carrier(texture: torch.Tensor, chips: int) -> torch.Tensor:
     its own. Bilinear resampling keeps the texture as a renderer's bilinear lookup shows it, up to a
     slight smoothing within each original texel."""
     factor = math.ceil(chips / min(texture.shape[-2:]))
-    if factor <= 1:
-        return texture
-    return F.interpolate(texture, scale_factor=factor, mode="bilinear", align_corners=False).clamp(0.0, 1.0)
+    return _resized(texture, (texture.shape[-2] * factor, texture.shape[-1] * factor))
 
 
 def resampled_like(texture: torch.Tensor, marked: torch.Tensor) -> torch.Tensor:
     """An original `texture` (..., C, H, W) at the size of its `marked` copy, resampled as `carrier`
     resampled it, so that comparing the two measures the mark alone."""
-    if texture.shape[-2:] == marked.shape[-2:]:
+    return _resized(texture, marked.shape[-2:])
+
+
+def _resized(texture: torch.Tensor, size) -> torch.Tensor:
+    """`texture` (..., C, H, W) resampled bilinearly to `size` (the same tensor if it is that size)."""
+    if tuple(texture.shape[-2:]) == tuple(size):
         return texture
     flat = texture.reshape(-1, *texture.shape[-3:]).float()
-    resized = F.interpolate(flat, size=marked.shape[-2:], mode="bilinear", align_corners=False).clamp(0.0, 1.0)
-    return resized.reshape(*texture.shape[:-2], *marked.shape[-2:]).to(texture.dtype)
+    resized = F.interpolate(flat, size=tuple(size), mode="bilinear", align_corners=False).clamp(0.0, 1.0)
+    return resized.reshape(*texture.shape[:-2], *size).to(texture.dtype)
 
 
 def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float) -> torch.Tensor:
