@@ -32,7 +32,7 @@ from PIL import Image
 import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset, collate
-from meshseal.pipeline import batch_mark_grid, random_backgrounds, sample_views
+from meshseal.pipeline import batch_mark_grid, batch_texels_used, random_backgrounds, sample_views
 from meshseal.register import pose_error
 from meshseal.render import MeshBatch, MeshRenderer
 
@@ -91,7 +91,8 @@ def main() -> None:
             message = payload.encode(identity, None, model.n_bits)[None]
             size = int(condition) if condition.isdigit() else 256
             with torch.no_grad():
-                marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch))
+                marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch),
+                                            batch_texels_used(batch))
                 cameras, lights = sample_views(1, "seed", generator)
                 if condition == "cut":
                     cameras = aimed_off(cameras, generator)

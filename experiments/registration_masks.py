@@ -23,7 +23,7 @@ import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset, collate
 from meshseal.framing import object_mask
-from meshseal.pipeline import batch_mark_grid, random_backgrounds, sample_views
+from meshseal.pipeline import batch_mark_grid, batch_texels_used, random_backgrounds, sample_views
 from meshseal.register import PICK_SIGMAS, pose_error, register, texture_misfit
 from meshseal.render import MeshBatch, MeshRenderer
 
@@ -47,7 +47,8 @@ def main() -> None:
         generator = torch.Generator().manual_seed(args.seed * 100003 + index)  # registration_conditions' draws
         message = payload.encode(int(torch.randint(0, 2 ** 31, (1,), generator=generator)), None, model.n_bits)[None]
         with torch.no_grad():
-            marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch))
+            marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch),
+                                        batch_texels_used(batch))
             cameras, lights = sample_views(1, "seed", generator)
             out = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights,
                                  256, 256, torch.zeros(1, 3))

@@ -14,6 +14,7 @@ from .framing import box_from_points, boxes_from_mask, crop_boxes, object_mask
 from .mesh import Mesh, normalize, to_z_up
 from .models import WatermarkModel
 from .models.io import load_model, read_metadata
+from .models.spread import palette_share, texels_used
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 DEFAULT_MODEL = "default"
@@ -197,6 +198,9 @@ def _load_image(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
     return pixels, mask, camera_text
 
 
+PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has faces without UV area
+
+
 class Watermarker:
     """A trained model with the operations users need."""
 
@@ -242,10 +246,18 @@ class Watermarker:
         encoder = self.model
         if encoder.texture_encoder is not None and textured and marked.uvs is not None:
             grid = self.mark_grid(marked)
-            for material in textured:
+            palette = palette_share(marked.positions, _textured_faces(marked), marked.uvs)
+            if palette >= PALETTE_WARNING:
+                print(f"meshseal: warning: {palette:.0%} of the textured surface has faces without UV area (the "
+                      "texture used as a colour palette): the mark has little room there and may read poorly",
+                      file=sys.stderr)
+            for index, material in enumerate(marked.materials):
+                if material.texture is None:
+                    continue
                 texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
+                used = texels_used(marked.uvs, marked.faces[marked.face_material == index], *texture.shape[-2:])
                 try:
-                    marked_texture = encoder.mark_texture(texture, message, strength, key_seed, grid)
+                    marked_texture = encoder.mark_texture(texture, message, strength, key_seed, grid, used)
                 except ValueError as error:
                     raise MeshsealError(str(error)) from None
                 material.texture = marked_texture[0].permute(1, 2, 0).cpu()

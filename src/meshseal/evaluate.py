@@ -16,9 +16,9 @@ import torch
 from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
-from .metrics import visibility
+from .metrics import shown_texture_psnr, visibility
 from .models import WatermarkModel
-from .pipeline import batch_mark_grid, run_pass
+from .pipeline import batch_mark_grid, batch_texels_used, run_pass
 from .render import MeshRenderer
 
 
@@ -33,7 +33,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
     renderer = MeshRenderer()
     count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
     accuracies, psnrs, ssims, texture_psnrs, normal_l1, uv_l1, seen = [], [], [], [], [], [], []
-    render_l1, texture_l1, texture_ssims = [], [], []
+    render_l1, texture_l1, texture_ssims, shown_psnrs = [], [], [], []
     device = model.device
     for view in range(views):
         for start in range(0, count, batch_size):
@@ -49,6 +49,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
             seen.append(visibility(out.render.cpu(), out.render_marked.cpu(), out.coverage.cpu()))
             ssims.append(ssim(out.render_marked, out.render))
             texture_psnrs.append(psnr(out.texture_marked, out.texture))
+            shown_psnrs.append(shown_texture_psnr(out.texture_marked, out.texture, batch_texels_used(batch)))
             render_l1.append((out.render_marked - out.render).abs().mean().reshape(1))
             texture_l1.append((out.texture_marked - out.texture).abs().mean().reshape(1))
             texture_ssims.append(ssim(out.texture_marked, out.texture))
@@ -66,6 +67,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
         "psnr_render": float(finite(torch.cat(psnrs)).mean()),
         "ssim_render": float(torch.cat(ssims).mean()),
         "psnr_texture": float(finite(torch.cat(texture_psnrs)).mean()),
+        "psnr_texture_shown": float(finite(torch.cat(shown_psnrs)).mean()),
         "ssim_texture": float(torch.cat(texture_ssims).mean()),
         "l1_texture": float(torch.cat(texture_l1).mean()),
         "l1_render": float(torch.cat(render_l1).mean()),
@@ -89,7 +91,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     `register` False skips registration: the camera-known figures alone, as `meshseal detect` reads
     pictures with camera metadata (fast enough for the whole split)."""
     from . import payload
-    from .api import Watermarker
+    from .api import PALETTE_WARNING, Watermarker
+    from .models.spread import palette_share
     from .pipeline import random_backgrounds, sample_views
     from .register import pose_error
     from .render import MeshBatch
@@ -116,8 +119,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         with torch.no_grad():
             if watermarker.calibrated:
                 normals_marked, uvs_marked = normals, uvs
-                texture_marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None),
-                                                    batch_mark_grid(model, batch))  # as `meshseal embed` marks it
+                texture_marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch),
+                                                    batch_texels_used(batch))  # as `meshseal embed` marks it
             else:
                 normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
             cameras, lights = sample_views(views, sampler, generator)
@@ -126,6 +129,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                 cameras, lights, size, size, background).image.clamp(0, 1)
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
         original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
+        n_verts, n_faces = int(batch["n_verts"][0]), int(batch["n_faces"][0])
+        palette = palette_share(positions[0, :n_verts], faces[0, :n_faces], uvs[0, :n_verts]) >= PALETTE_WARNING
         readings = []
         for view in range(views):
             picture = pictures[view].permute(1, 2, 0).cpu().numpy()
@@ -150,7 +155,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "exact": found is not None and found.message == identity,
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
-            rows.append(row)
+            rows.append(row | {"palette": palette})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
@@ -177,9 +182,14 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                    "exact_message_known_camera": mean("exact_known"), "fpr_threshold": payload.FPR}
     if pooled:
         result |= {"tpr_pooled": mean("detected", pooled), "exact_message_pooled": mean("exact", pooled)}
+    if coded:  # meshes with a UV map, and those that use the texture as a palette (`api.PALETTE_WARNING`)
+        result["by_uv_map"] = {name: {"pictures": len(part), "bit_acc_known_camera": mean("bit_acc_known", part) if part else None,
+                                      "tpr_known_camera": mean("detected_known", part) if part else None}
+                               for name, part in (("uv_mapped", [r for r in rows if not r["palette"]]),
+                                                  ("palette", [r for r in rows if r["palette"]]))}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
-            "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold",
+            "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
             "seconds_per_picture", "n_meshes", "n_views", "size")}
     return result
 

@@ -56,3 +56,15 @@ def visibility(original: torch.Tensor, marked: torch.Tensor, mask: torch.Tensor)
              object_flip(quantise(o), quantise(m), k)) for o, m, k in zip(original, marked, mask) if k.any()]
     return {"psnr_object": float(np.mean([r[0] for r in rows])), "ssim_object": float(np.mean([r[1] for r in rows])),
             "flip_object": float(np.mean([r[2] for r in rows]))}
+
+
+def shown_texture_psnr(marked: torch.Tensor, original: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
+    """Texture PSNR (B,) over the texels each mesh shows: marked (B, 3, h, w) against original
+    (B, 3, H, W) resampled alike, used (B, 1, H, W) (`batch_texels_used`) resized as the mark resized it."""
+    from .models.spread import resampled_like
+
+    original = resampled_like(original, marked)
+    used = F.interpolate(used.float(), size=marked.shape[-2:], mode="nearest")
+    error = ((marked - original) ** 2).mean(1, keepdim=True)
+    mse = (error * used).sum(dim=(1, 2, 3)) / used.sum(dim=(1, 2, 3)).clamp_min(1)
+    return -10.0 * torch.log10(mse.clamp_min(1e-10))

@@ -14,6 +14,7 @@ from .data.dataset import vertex_mask
 from .distortions import Distortions2D, Distortions3D, gaussian_blur
 from .framing import boxes_from_mask, crop_boxes
 from .models import WatermarkModel
+from .models.spread import SpreadSpectrumEncoder
 from .render import (Cameras, MeshBatch, MeshRenderer, interpolate, lights_at, pixels_at, relight_fragments,
                      sample_any_lights, sample_any_view_cameras, sample_seed_cameras, sample_seed_lights, unrender)
 from .render.lighting import K_AMBIENT
@@ -302,6 +303,17 @@ def batch_mark_grid(model: WatermarkModel, batch: dict, index: int = 0) -> int |
                            batch["uvs"][index, :n_verts])
 
 
+def batch_texels_used(batch: dict) -> torch.Tensor:
+    """The texels (B, 1, H, W) each mesh of a dataset batch shows (its padding left out), where a
+    spread mark lies, as `Watermarker.embed` finds them (`models.spread.texels_used`)."""
+    from .models.spread import texels_used
+
+    height, width = batch["texture"].shape[-2:]
+    return torch.stack([texels_used(batch["uvs"][index, :int(batch["n_verts"][index])],
+                                    batch["faces"][index, :int(batch["n_faces"][index])], height, width)
+                        for index in range(len(batch["texture"]))])[:, None].to(batch["texture"].device)
+
+
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
                     grids: tuple[int, ...] | None = None) -> torch.Tensor:
@@ -386,7 +398,9 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
     positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
     n = positions.shape[0]
     mask = vertex_mask(batch) if "n_verts" in batch else None
-    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, mask)
+    spread = isinstance(model.texture_encoder, SpreadSpectrumEncoder) and mask is not None
+    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, mask,
+                                                             batch_texels_used(batch) if spread else None)
     cameras, lights = sample_views(n, sampler, generator)
     if background is None:
         background = torch.zeros(n, 3)

@@ -167,14 +167,18 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
     import torch
 
     from ..losses import normal_angle_deg, psnr, ssim
-    from ..metrics import visibility
-    from ..models.spread import resampled_like
+    from ..metrics import shown_texture_psnr, visibility
+    from ..models.spread import resampled_like, texels_used
 
-    texture_psnr, shifts = [], []
-    for before, after in zip(original.materials, marked.materials):
+    texture_psnr, shown_psnr, shifts = [], [], []
+    for index, (before, after) in enumerate(zip(original.materials, marked.materials)):
         if before.texture is not None and after.texture is not None:
-            after_texture = after.texture.permute(2, 0, 1)[None]
-            texture_psnr.append(float(psnr(after_texture, resampled_like(before.texture.permute(2, 0, 1)[None], after_texture))))
+            after_texture, before_texture = after.texture.permute(2, 0, 1)[None], before.texture.permute(2, 0, 1)[None]
+            texture_psnr.append(float(psnr(after_texture, resampled_like(before_texture, after_texture))))
+            shown = texels_used(original.uvs, original.faces[original.face_material == index], *before_texture.shape[-2:]) \
+                if original.uvs is not None else None
+            if shown is not None and bool(shown.any()):
+                shown_psnr.append(float(shown_texture_psnr(after_texture, before_texture, shown[None, None])[0]))
     if original.uvs is not None and marked.uvs is not None:
         sizes = torch.tensor([max(m.texture.shape[:2]) if m.texture is not None else 0 for m in original.materials],
                              dtype=torch.float32)
@@ -183,6 +187,7 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
         shifts.append(float(((marked.uvs - original.uvs).norm(dim=-1) * per_vertex).mean()))
     report = {
         "psnr_texture": round(sum(texture_psnr) / len(texture_psnr), 3) if texture_psnr else None,
+        "psnr_texture_shown": round(sum(shown_psnr) / len(shown_psnr), 3) if shown_psnr else None,
         "normal_angle_deg": round(float(normal_angle_deg(marked.normals, original.normals)), 4),
         "uv_shift_texels": round(shifts[0], 4) if shifts else 0.0,
         "views": views,
@@ -255,7 +260,9 @@ def run_embed(args) -> int:
         print(f"wrote {', '.join(str(p) for p in written)}")
         psnr_texture = report["psnr_texture"]
         cells = f" ({report['cells']}^2 cells)" if report["cells"] else ""
-        print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB{cells}, normal change "
+        shown = report["psnr_texture_shown"]
+        shown = f" (over the texels the mesh shows: {shown} dB)" if shown is not None else ""
+        print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB{shown}{cells}, normal change "
               f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels")
         if args.views:
             print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {report['psnr_object']:.2f} dB, "

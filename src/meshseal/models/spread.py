@@ -142,19 +142,59 @@ class SpreadSpectrumEncoder(nn.Module):
         return values.reshape(-1, 1, chips, chips)
 
     def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
-                key_seed: int | None = None, chips: int | None = None) -> torch.Tensor:
+                key_seed: int | None = None, chips: int | None = None, used: torch.Tensor | None = None) -> torch.Tensor:
         """texture (B, 3, H, W) in [0, 1], message (B, N) -> marked texture on the chips x chips grid
-        (default the model's own; `grid_for` picks a mesh's). The residual's RMS is `strength` times
-        that of the model's target texture PSNR (strength 2: 6 dB louder). A texture with fewer texels
-        a side than the grid has cells is first resampled up (`carrier`): the marked texture is then
-        larger than the one given."""
+        (default the model's own; `grid_for` picks a mesh's). `used` (B, 1, h, w) or (h, w), any
+        size: the texels the mesh shows (`texels_used`); the mark lies on them alone and its RMS there
+        is `strength` times that of the model's target texture PSNR (strength 2: 6 dB louder), so no
+        energy goes where no view can see it and the PSNR over the shown texels is the target
+        whatever share of the texture the mesh uses (None: the whole texture). A texture with fewer
+        texels a side than the grid has cells is first resampled up (`carrier`): the marked texture
+        is then larger than the one given."""
         texture = carrier(texture, chips or self.chips)
         pattern = F.interpolate(self.cells(message, key_seed, chips).to(texture), size=texture.shape[-2:],
                                 mode="bilinear", align_corners=False)
         residual = self.amplitude(texture) * pattern
+        share = 1.0
+        if used is not None:
+            used = F.interpolate(used.reshape(-1, 1, *used.shape[-2:]).to(texture), size=texture.shape[-2:], mode="nearest")
+            residual, share = residual * used, used.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
         rms = strength * 10.0 ** (-self.texture_psnr / 20.0)
-        residual = residual * rms / residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).sqrt().clamp_min(1e-8)
+        energy = residual.pow(2).mean(dim=(1, 2, 3), keepdim=True) / share
+        residual = residual * rms / energy.sqrt().clamp_min(1e-8)
         return (texture + residual).clamp(0.0, 1.0)
+
+
+def texels_used(uvs: torch.Tensor, faces: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """The texels (height, width) bool of a texture that faces (F, 3) with uvs (V, 2) can show: those
+    whose centre a face covers in the UV square (wrapped, as repeating textures are), those under its
+    edges (slivers, faces smaller than a texel, faces whose UVs lie on a line), and their neighbours
+    (a bilinear lookup reads them). A face spanning the whole square shows every texel."""
+    from ..render.rasterizer import visible_faces
+
+    corners = uvs.detach().double().cpu()[faces.cpu().long()]  # (F, 3, 2)
+    if len(corners) == 0:
+        return torch.zeros(height, width, dtype=torch.bool)
+    low = torch.floor(corners.amin(1, keepdim=True))
+    shifted = corners - low  # each face moved so that its lowest corner lies in the unit square
+    if bool((shifted.amax(dim=(1, 2)) > 2.0).any()):
+        return torch.ones(height, width, dtype=torch.bool)
+    # On a 2 x 2 tile canvas: x = u - 1 and y = v - 1 in normalised device coordinates.
+    clip = torch.cat([shifted - 1.0, torch.zeros_like(shifted[..., :1]), torch.ones_like(shifted[..., :1])], -1)
+    covered = visible_faces(clip.reshape(1, -1, 4), torch.arange(clip.shape[0] * 3).reshape(-1, 3),
+                            2 * height, 2 * width)[0] >= 0
+    used = covered.reshape(2, height, 2, width).any(2).any(0)
+    start, end = corners.reshape(-1, 2), corners.roll(-1, dims=1).reshape(-1, 2)  # every edge, sampled twice a texel
+    steps = ((end - start) * start.new_tensor([width, height])).norm(dim=1).mul(2).ceil().long() + 1
+    edge = torch.repeat_interleave(torch.arange(len(steps)), steps)
+    along = (torch.arange(len(edge)) - torch.repeat_interleave(torch.cumsum(steps, 0) - steps, steps)) / steps[edge]
+    points = start[edge] + along[:, None] * (end - start)[edge]  # what slivers and UV-degenerate faces show
+    points = points - torch.floor(points)
+    rows = ((1.0 - points[:, 1]) * height).long().clamp(0, height - 1)
+    columns = (points[:, 0] * width).long().clamp(0, width - 1)
+    used[rows, columns] = True
+    grown = F.max_pool2d(F.pad(used[None, None].float(), (1, 1, 1, 1), mode="circular"), 3, 1)
+    return grown[0, 0] > 0
 
 
 def carrier(texture: torch.Tensor, chips: int) -> torch.Tensor:
@@ -305,14 +345,10 @@ def cell_pixels(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor,
     (F, 3) of its textured triangles, uvs (V, 2)) in a standard view: a 256^2 picture of the object
     scaled to radius 1 (about its box's centre) from 3.5 away with a 60-degree field. The
     area-weighted median over faces of sqrt(surface area / UV area): independent of the mesh's units."""
-    positions, uvs, faces = positions.detach().double().cpu(), uvs.detach().double().cpu(), faces.cpu().long()
     if len(faces) == 0:
         return float("inf")
+    positions, (surface, uv_area) = positions.detach().double().cpu(), _areas(positions, faces, uvs)
     radius = float((positions - (positions.amax(0) + positions.amin(0)) / 2).norm(dim=1).max())
-    corners = positions[faces]
-    surface = 0.5 * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=1)
-    first, second = uvs[faces[:, 1]] - uvs[faces[:, 0]], uvs[faces[:, 2]] - uvs[faces[:, 0]]
-    uv_area = 0.5 * (first[:, 0] * second[:, 1] - first[:, 1] * second[:, 0]).abs()
     usable = (uv_area > 1e-12) & (surface > 0)
     if not bool(usable.any()) or radius <= 0:
         return float("inf")
@@ -321,3 +357,21 @@ def cell_pixels(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor,
     cumulative = torch.cumsum(weight[order], 0)
     median = stretch[order][min(int(torch.searchsorted(cumulative, cumulative[-1] / 2)), len(order) - 1)]
     return float(median) / radius / chips / PIXEL_AT_OBJECT
+
+
+def palette_share(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> float:
+    """The share of a mesh's textured surface (faces (F, 3)) whose faces have no UV area: a texture
+    used as a colour palette, each such face showing one texel or a line of them. A texture mark
+    has next to no room there: all of a face's pixels show the same few cells."""
+    surface, uv_area = _areas(positions, faces, uvs)
+    total = float(surface.sum())
+    return float(surface[uv_area <= 1e-12].sum()) / total if total > 0 else 0.0
+
+
+def _areas(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each face's surface area and UV area (F,), in double precision."""
+    positions, uvs, faces = positions.detach().double().cpu(), uvs.detach().double().cpu(), faces.cpu().long()
+    corners = positions[faces]
+    surface = 0.5 * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=1)
+    first, second = uvs[faces[:, 1]] - uvs[faces[:, 0]], uvs[faces[:, 2]] - uvs[faces[:, 0]]
+    return surface, 0.5 * (first[:, 0] * second[:, 1] - first[:, 1] * second[:, 0]).abs()

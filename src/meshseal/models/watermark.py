@@ -126,20 +126,25 @@ class WatermarkModel(nn.Module):
         """Where the model lives (a spread-spectrum model has buffers but no parameters)."""
         return next(iter([*self.parameters(), *self.buffers()])).device
 
-    def embed(self, positions, normals, uvs, texture, message, vertex_mask=None):
-        """Watermark a batch: returns (normals, uvs, texture), each unchanged where its encoder is off."""
+    def embed(self, positions, normals, uvs, texture, message, vertex_mask=None, used=None):
+        """Watermark a batch: returns (normals, uvs, texture), each unchanged where its encoder is off.
+        `used` (B, 1, H, W): the texels each mesh shows, where a spread mark lies (`texels_used`)."""
         if self.vertex_encoder is not None:
             normals, uvs = self.vertex_encoder(positions, normals, uvs, message, vertex_mask)
-        if self.texture_encoder is not None:
+        if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
+            texture = self.texture_encoder(texture, message, used=used)
+        elif self.texture_encoder is not None:
             texture = self.texture_encoder(texture, message)
         return normals, uvs, texture
 
     def mark_texture(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
-                     key_seed: int | None = None, chips: int | None = None) -> torch.Tensor:
+                     key_seed: int | None = None, chips: int | None = None,
+                     used: torch.Tensor | None = None) -> torch.Tensor:
         """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread mark,
-        `key_seed` picks its keyed pattern and `chips` its cell grid (the mesh's: `mark_grid`)."""
+        `key_seed` picks its keyed pattern, `chips` its cell grid (the mesh's: `mark_grid`) and `used`
+        the texels it lies on (the mesh's: `models.spread.texels_used`)."""
         if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
-            return self.texture_encoder(texture, message, strength, key_seed, chips)
+            return self.texture_encoder(texture, message, strength, key_seed, chips, used)
         if strength != 1.0:
             raise ValueError("only spread-spectrum models take a strength (learned marks have a trained power)")
         return self.texture_encoder(texture, message)
