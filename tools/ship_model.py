@@ -79,7 +79,7 @@ def main() -> int:
         architecture = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
                         f"{coarse_text}, each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
                         f"shaped by local texture activity (window {config['activity_window']}, floor "
-                        f"{config['activity_floor']}) and scaled to texture PSNR {config['texture_psnr']} dB at strength 1; "
+                        f"{config['activity_floor']}), laid on the texels the mesh shows and scaled to texture PSNR {config['texture_psnr']} dB over those at strength 1; "
                         "read by a matched filter (the residual whitened in the picture) after un-rendering the picture onto the "
                         "original mesh relit to match it "
                         "(detection needs the original mesh and the picture's camera: from the PNG's metadata, or "
