@@ -39,6 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+USED_RESOLUTION = 1024  # `texels_used` works at most this many texels a side
 READ_BOTH_BELOW = 1.1  # detection reads both grids up to this many times the embedding's threshold
 PIXEL_AT_OBJECT = 2 * 3.5 * math.tan(math.radians(30)) / 256  # a 256^2 picture's pixel at a radius-1 object 3.5 away, 60-degree view
 COLOURS = {"blue-yellow": (1.0, 1.0, -2.0), "grey": (1.0, 1.0, 1.0), "red-green": (1.0, -1.0, 0.0)}
@@ -169,32 +170,19 @@ def texels_used(uvs: torch.Tensor, faces: torch.Tensor, height: int, width: int)
     """The texels (height, width) bool of a texture that faces (F, 3) with uvs (V, 2) can show: those
     whose centre a face covers in the UV square (wrapped, as repeating textures are), those under its
     edges (slivers, faces smaller than a texel, faces whose UVs lie on a line), and their neighbours
-    (a bilinear lookup reads them). A face spanning the whole square shows every texel."""
-    from ..render.rasterizer import visible_faces
+    (a bilinear lookup reads them). A face spanning over two UV squares shows every texel. Worked out
+    at most USED_RESOLUTION texels a side and scaled up (a few texels more on large textures)."""
+    from ..render.rasterizer import texel_coverage
 
     corners = uvs.detach().double().cpu()[faces.cpu().long()]  # (F, 3, 2)
     if len(corners) == 0:
         return torch.zeros(height, width, dtype=torch.bool)
-    low = torch.floor(corners.amin(1, keepdim=True))
-    shifted = corners - low  # each face moved so that its lowest corner lies in the unit square
-    if bool((shifted.amax(dim=(1, 2)) > 2.0).any()):
+    corners = corners - torch.floor(corners.amin(1, keepdim=True))  # each face near the first UV square
+    if bool((corners.amax(dim=(1, 2)) > 2.0).any()):
         return torch.ones(height, width, dtype=torch.bool)
-    # On a 2 x 2 tile canvas: x = u - 1 and y = v - 1 in normalised device coordinates.
-    clip = torch.cat([shifted - 1.0, torch.zeros_like(shifted[..., :1]), torch.ones_like(shifted[..., :1])], -1)
-    covered = visible_faces(clip.reshape(1, -1, 4), torch.arange(clip.shape[0] * 3).reshape(-1, 3),
-                            2 * height, 2 * width)[0] >= 0
-    used = covered.reshape(2, height, 2, width).any(2).any(0)
-    start, end = corners.reshape(-1, 2), corners.roll(-1, dims=1).reshape(-1, 2)  # every edge, sampled twice a texel
-    steps = ((end - start) * start.new_tensor([width, height])).norm(dim=1).mul(2).ceil().long() + 1
-    edge = torch.repeat_interleave(torch.arange(len(steps)), steps)
-    along = (torch.arange(len(edge)) - torch.repeat_interleave(torch.cumsum(steps, 0) - steps, steps)) / steps[edge]
-    points = start[edge] + along[:, None] * (end - start)[edge]  # what slivers and UV-degenerate faces show
-    points = points - torch.floor(points)
-    rows = ((1.0 - points[:, 1]) * height).long().clamp(0, height - 1)
-    columns = (points[:, 0] * width).long().clamp(0, width - 1)
-    used[rows, columns] = True
+    used = texel_coverage(corners, min(height, USED_RESOLUTION), min(width, USED_RESOLUTION))
     grown = F.max_pool2d(F.pad(used[None, None].float(), (1, 1, 1, 1), mode="circular"), 3, 1)
-    return grown[0, 0] > 0
+    return F.interpolate(grown, size=(height, width), mode="nearest")[0, 0] > 0
 
 
 def carrier(texture: torch.Tensor, chips: int) -> torch.Tensor:

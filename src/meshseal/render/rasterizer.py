@@ -60,6 +60,43 @@ def _zbuffer(xy, z, w, faces, near, face_out, depth):  # pragma: no cover - comp
         _zbuffer_one(xy[b], z[b], w[b], faces[min(np.int64(b), n_faces_sets - 1)], near, face_out[b], depth[b])
 
 
+@numba.njit(cache=True)
+def _texel_coverage(corners, used):  # pragma: no cover - compiled
+    height, width = used.shape
+    for f in range(corners.shape[0]):
+        xs = np.empty(3)
+        ys = np.empty(3)
+        for k in range(3):  # texel coordinates: texel (r, c) spans [c, c + 1) x [r, r + 1), row 0 at v = 1
+            xs[k] = corners[f, k, 0] * width
+            ys[k] = (1.0 - corners[f, k, 1]) * height
+        area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0])
+        if abs(area) > 1e-12:  # texel centres inside the face
+            inv_area = 1.0 / area
+            for row in range(int(math.ceil(min(ys[0], ys[1], ys[2]) - 0.5)), int(math.floor(max(ys[0], ys[1], ys[2]) - 0.5)) + 1):
+                py = row + 0.5
+                for col in range(int(math.ceil(min(xs[0], xs[1], xs[2]) - 0.5)), int(math.floor(max(xs[0], xs[1], xs[2]) - 0.5)) + 1):
+                    px = col + 0.5
+                    l0 = ((xs[1] - px) * (ys[2] - py) - (xs[2] - px) * (ys[1] - py)) * inv_area
+                    l1 = ((xs[2] - px) * (ys[0] - py) - (xs[0] - px) * (ys[2] - py)) * inv_area
+                    if l0 >= 0.0 and l1 >= 0.0 and l0 + l1 <= 1.0:
+                        used[row % height, col % width] = True
+        for k in range(3):  # the texels under its edges, a point every half texel or closer
+            x0, y0, x1, y1 = xs[k], ys[k], xs[(k + 1) % 3], ys[(k + 1) % 3]
+            steps = int(math.ceil(2.0 * math.hypot(x1 - x0, y1 - y0))) + 1
+            for step in range(steps + 1):
+                t = step / steps
+                used[int(math.floor(y0 + t * (y1 - y0))) % height, int(math.floor(x0 + t * (x1 - x0))) % width] = True
+
+
+def texel_coverage(corners: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """The texels (height, width) bool of a height x width texture that triangles with UV corners
+    `corners` (F, 3, 2) cover, wrapped (a repeating texture): those whose centre a triangle covers and
+    those its edges cross (a sliver, or a triangle whose UVs lie on a line, covers no centre)."""
+    used = np.zeros((height, width), dtype=np.bool_)
+    _texel_coverage(np.ascontiguousarray(corners.detach().to("cpu", torch.float64).numpy()), used)
+    return torch.from_numpy(used)
+
+
 @dataclass
 class Fragments:
     """The visible surface at each foreground pixel.
