@@ -107,7 +107,7 @@ def main() -> None:
             pixels = np.asarray(Image.open(buffer).convert("RGB"), dtype=np.float32) / 255
             started = time.perf_counter()
             try:
-                reading = wm.read(pixels, original, register=True)
+                reading = wm.look_again(wm.read(pixels, original, register=True), original)  # as `meshseal detect`
             except meshseal.MeshsealError:
                 reading = None
             seconds = time.perf_counter() - started

@@ -2,8 +2,10 @@
 known, and no mark found where there is none."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
+import pytest
 import torch
 
 from meshseal.cli import main
@@ -417,3 +419,65 @@ def test_a_magnified_texture_is_marked_on_finer_cells_of_a_resampled_texture_and
     assert abs(report["psnr_texture_shown"] - encoder.texture_psnr) < 0.2  # the mark's power, not the resampling's
 
     _assert_read_on_either_grid(wm, large, marked)
+
+
+def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
+    """A registered reading whose camera is a wrong (twin) view: `look_again` reads it under the
+    registration's alternatives and keeps the one whose mark is found; the p-value pays x2 at the
+    first camera and x2K at an alternative; unmarked pictures stay undetected; pooling skips it."""
+    import meshseal.api as api
+    from meshseal import payload
+    from meshseal.api import Watermarker
+
+    model, message, original, marked = _original_and_marked_batches()
+    marked.textures = [model.mark_texture(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
+    watermarker = Watermarker(model)  # reads under the public key's pattern
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    turned = replace(cameras, eye=cameras.eye * torch.tensor([-1.0, -1.0, 1.0]))  # half a turn about the vertical
+    with torch.no_grad():
+        seen = {name: _quantise(MeshRenderer()(mesh, cameras, lights, 256, 256).image)
+                for name, mesh in (("marked", marked), ("clean", original))}
+    mask = seen["marked"][0].sum(0) > 0
+
+    def registered_at(picture, camera, alternatives):
+        reading = watermarker.read(picture[0].permute(1, 2, 0).numpy(), original, camera=camera)
+        return replace(reading, camera="registered", second_look=(picture, mask, alternatives))
+
+    first = registered_at(seen["marked"], turned, (lambda: turned, lambda: cameras))
+    plain = watermarker.decide([replace(first, second_look=())])
+    monkeypatch.setattr(api, "LOOK_AGAIN_BELOW", 1.0)  # look again whatever the first reading says
+    again = watermarker.look_again(first, original)
+    decision = watermarker.decide([again])
+    assert not plain.detected and decision.detected and again.tries == 4 and not again.second_look
+    assert ((torch.tensor([int(b) for b in decision.bits]) == message[0]).float().mean()) >= 0.95
+    assert torch.allclose(again.found.eye, cameras.eye)
+    single = watermarker.decide([replace(again, tries=1)])
+    assert decision.p_value == pytest.approx(min(1.0, 4 * single.p_value), rel=1e-9)
+    # Found at the registered camera: x2, no alternative tried.
+    direct = watermarker.look_again(registered_at(seen["marked"], cameras, (lambda: turned,)), original)
+    assert direct.tries == 2 and torch.allclose(direct.found.eye, cameras.eye)
+    # An unmarked picture: no camera finds a mark; pooling keeps the first camera and no factor.
+    clean = watermarker.look_again(registered_at(seen["clean"], turned, (lambda: cameras,)), original)
+    assert not watermarker.decide([clean]).detected and clean.tries == 2
+    pooled = watermarker.look_again(first, original, search=False)
+    assert pooled.tries == 1 and not pooled.second_look and torch.equal(pooled.evidence, first.evidence)
+
+
+def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(tmp_path):
+    """`meshseal detect --workers N` sends readings between processes: a registered one comes back
+    settled (no picture, mask or refinement closures), so it pickles."""
+    import pickle
+
+    from PIL import Image
+
+    from meshseal.api import Watermarker
+    from meshseal.commands.model import _read_one
+
+    model, _, original, marked = _original_and_marked_batches()
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        picture = _quantise(MeshRenderer()(marked, cameras, lights, 128, 128, (0.5, 0.5, 0.5)).image)[0]
+    Image.fromarray((picture.permute(1, 2, 0).numpy() * 255).round().astype("uint8")).save(tmp_path / "p.png")
+    path, reading, error = _read_one(Watermarker(model), original, tmp_path / "p.png", True, 60.0, None, None, True)
+    assert error is None and reading.camera == "registered" and reading.second_look == () and reading.tries % 2 == 0
+    assert pickle.loads(pickle.dumps(reading)).tries == reading.tries

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -118,6 +119,8 @@ class _Reading:
     camera: str | None
     registration_iou: float | None
     found: object = None  # the Cameras used to un-render (informed models)
+    tries: int = 1  # what `decide` multiplies the p-value by for the cameras a second look could try
+    second_look: tuple = ()  # registered: (picture, mask, Registration.alternatives), until `look_again`
 
 
 MIN_PICTURE_SIDE = 16  # smaller pictures cannot show the object's texture; refused at once
@@ -199,6 +202,7 @@ def _load_image(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
 
 
 PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has faces without UV area
+LOOK_AGAIN_BELOW = 0.01  # a registered reading not detected is read under other views when its p-value is under this
 
 
 class Watermarker:
@@ -319,11 +323,47 @@ class Watermarker:
         """
         original = self.original(mesh) if self.model.informed else None
         single = not isinstance(images, (list, tuple))
-        readings = [self.read(image, original, register, fov_y) for image in ([images] if single else images)]
+        readings = [self.look_again(self.read(image, original, register, fov_y), original, key, expect, search=not pool)
+                    for image in ([images] if single else images)]
         if pool:
             return self.decide(readings, key, expect)
         results = [self.decide([reading], key, expect) for reading in readings]
         return results[0] if single else results
+
+    def look_again(self, reading: _Reading, original, key=None, expect=None, search: bool = True) -> _Reading:
+        """A registered reading, looked at again where its mark is not found: read under the
+        registration's next-best views (`Registration.alternatives`: a near-symmetric shape's twin
+        views fit its silhouette and texture alike, and only the keyed mark tells them apart), keeping
+        the camera whose reading is likeliest marked. Only where the registered camera's reading
+        already hints at a mark (p-value under LOOK_AGAIN_BELOW: a twin view of a symmetric asset
+        still reads part of the mark), so that unmarked pictures rarely pay for it. The p-value pays
+        for it (Bonferroni over two stages): x2 at the registered camera, x2K at the best of K
+        alternatives, so that a reading's p-value stays valid however the camera was picked. Other
+        readings, and all of them with `search` False (pooling), come back as they are, without what
+        a second look needs."""
+        from . import payload
+        from .register import silhouette_iou
+
+        if not reading.second_look:
+            return reading
+        picture, mask, alternatives = reading.second_look
+        if not search or not self.calibrated or not alternatives:
+            return replace(reading, second_look=())
+        first = replace(reading, second_look=(), tries=2)
+        decision = self.decide([first], key, expect)
+        if decision.detected or decision.p_value > LOOK_AGAIN_BELOW:
+            return first
+        best, best_p = first, decision.p_value
+        for refine in alternatives:
+            camera = refine()
+            other = replace(first, evidence=self._evidence(original, picture, camera), found=camera,
+                             registration_iou=silhouette_iou(original, camera, mask), tries=2 * len(alternatives))
+            p_value = self.decide([other], key, expect).p_value
+            if p_value < best_p:
+                best, best_p = other, p_value
+            if payload.detected(best_p):
+                break  # every alternative is paid for, tried or not
+        return best
 
     def decide(self, readings: list[_Reading], key=None, expect=None) -> Detection:
         """The decision on the evidence of `read` (several readings: pooled, their evidence added)."""
@@ -338,6 +378,7 @@ class Watermarker:
         expected = payload.encode(expect, key, self.n_bits) if expect is not None and self.n_bits in payload.SCHEMAS else None
         if self.calibrated:
             soft, weights, tries = self._best_grid(evidence, key, expected)
+            tries *= math.prod(r.tries for r in readings)  # the cameras second looks could try (`look_again`)
         else:
             soft = evidence[0].double()
         bits = "".join("1" if v > 0 else "0" for v in soft.tolist())
@@ -442,6 +483,9 @@ class Watermarker:
                 box = found.box[None]
                 evidence = self._evidence(original, tensor.clamp(0, 1), found.camera)
                 source, iou, camera = "registered", found.iou, found.camera
+                second_look = (tensor.clamp(0, 1), torch.from_numpy(np.ascontiguousarray(mask)).to(self.device),
+                               found.alternatives)
+                return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera, second_look=second_look)
         return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera)
 
     def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original) -> list[torch.Tensor]:

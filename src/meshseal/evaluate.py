@@ -140,6 +140,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             if register:
                 started = time.perf_counter()
                 reading = _read_or_none(watermarker, picture, original, register=True)
+                reading = None if reading is None else watermarker.look_again(reading, original)  # as `meshseal detect`
                 seconds = time.perf_counter() - started
             agree = lambda d: float(np.mean([int(b) for b in d.bits] == message[0].cpu().numpy()))  # noqa: E731
             # A picture `meshseal detect` refuses (e.g. no object found) counts as read at chance.

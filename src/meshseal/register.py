@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import partial
 
 import torch
 import torch.nn.functional as F
@@ -38,6 +39,7 @@ PICK_IOU_SLACK = 0.1  # ... and only if its refined silhouette's IoU is at most 
 FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-pixel one left this share of the misfit or more
 ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (registered: 0.01-0.03; a wrong view: about 2)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
+ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
 
@@ -46,11 +48,15 @@ FOV = 60.0
 class Registration:
     """camera: the camera of the whole picture (its field of view as assumed, principal point at the
     centre); box: the object's square box (cx, cy, half) in the picture's pixels; iou: overlap of the
-    registered silhouette with the picture's."""
+    registered silhouette with the picture's. alternatives: for the next-best distinct views (up to
+    ALTERNATIVES, best first), each a function that refines that view as `camera` was refined and
+    returns its camera: a near-symmetric shape's twin views fit silhouette and texture alike, and
+    only the mark can tell them apart (`Watermarker.look_again`)."""
 
     camera: Cameras
     box: torch.Tensor
     iou: float
+    alternatives: tuple = ()
 
 
 def _up_for(direction: torch.Tensor) -> torch.Tensor:
@@ -641,15 +647,21 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     misfits = [texture_misfit(mesh, refined[[i]], target, target_mask[:, 0], PICK_SIGMAS)
                if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK else math.inf for i in range(len(refined))]
     pick = min(range(len(refined)), key=misfits.__getitem__)
-    camera = refined[[pick if misfits[pick] < PICK_MARGIN * misfits[0] else 0]]
-    for sigma in FINE_SILHOUETTE_SIGMAS:
-        camera = _refine_silhouettes(mesh, camera, levels[SEARCH_SIZE], sigma)
+    chosen = pick if misfits[pick] < PICK_MARGIN * misfits[0] else 0
+    others = sorted((i for i in range(len(refined)) if i != chosen and math.isfinite(misfits[i])), key=misfits.__getitem__)
 
-    # 3. The same camera for the whole picture, refined there on the texture.
-    camera = replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
-    if texture_refine:
-        camera = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
-    return Registration(camera, box[0], silhouette_iou(mesh, camera, mask))
+    def finish(camera: Cameras) -> Cameras:
+        """The picked candidate refined finely on silhouettes, then (3.) for the whole picture on the texture."""
+        for sigma in FINE_SILHOUETTE_SIGMAS:
+            camera = _refine_silhouettes(mesh, camera, levels[SEARCH_SIZE], sigma)
+        camera = replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
+        if texture_refine:
+            camera = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
+        return camera
+
+    camera = finish(refined[[chosen]])
+    alternatives = tuple(partial(finish, refined[[i]]) for i in others[:ALTERNATIVES])
+    return Registration(camera, box[0], silhouette_iou(mesh, camera, mask), alternatives)
 
 
 def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,

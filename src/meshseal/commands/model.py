@@ -370,8 +370,10 @@ def _readings(args, watermarker, original, paths: list[Path], workers: int):
     """(path, reading, error text) of each picture, in order. With more than one worker, spawned
     processes (one thread each) load the model and the original once and read the pictures in
     parallel; the decisions stay with the caller."""
+    key, expect = _key(args), args.expect if args.expect_id is None else args.expect_id
+    task = (args.register, args.fov, key, expect, not args.pool)
     if workers <= 1:
-        yield from (_read_one(watermarker, original, path, args.register, args.fov) for path in paths)
+        yield from (_read_one(watermarker, original, path, *task) for path in paths)
         return
     import multiprocessing
     import os
@@ -388,15 +390,18 @@ def _readings(args, watermarker, original, paths: list[Path], workers: int):
         os.environ.clear()
         os.environ.update(saved)
     try:
-        yield from pool.imap(_worker_read, [(path, args.register, args.fov) for path in paths])
+        yield from pool.imap(_worker_read, [(path, *task) for path in paths])
     finally:
         pool.terminate()
         pool.join()
 
 
-def _read_one(watermarker, original, path, register: bool, fov: float):
+def _read_one(watermarker, original, path, register: bool, fov: float, key, expect, search: bool):
+    """A picture's reading, looked at again under the registration's next-best views where its mark is
+    not found (`Watermarker.look_again`; not when pooling)."""
     try:
-        return path, watermarker.read(path, original, register=register, fov_y=fov), None
+        reading = watermarker.read(path, original, register=register, fov_y=fov)
+        return path, watermarker.look_again(reading, original, key, expect, search), None
     except MeshsealError as error:
         return path, None, str(error)
 
