@@ -137,7 +137,7 @@ def main() -> None:
                 picture = png_without_metadata(pictures["marked"][view, ..., :3].permute(2, 0, 1))
                 t0 = time.perf_counter()
                 try:
-                    reading = wm.read(picture, original_batch, register=True)
+                    reading = wm.look_again(wm.read(picture, original_batch, register=True), original_batch)  # as `meshseal detect`
                 except meshseal.MeshsealError as error:
                     print(f"{name} {engine} view {view}: {error}", file=sys.stderr)
                     continue
