@@ -49,7 +49,8 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
             seen.append(visibility(out.render.cpu(), out.render_marked.cpu(), out.coverage.cpu()))
             ssims.append(ssim(out.render_marked, out.render))
             texture_psnrs.append(psnr(out.texture_marked, out.texture))
-            shown_psnrs.append(shown_texture_psnr(out.texture_marked, out.texture, batch_texels_used(batch)))
+            shown = out.shown if out.shown is not None else batch_texels_used(batch)  # learned marks: worked out here
+            shown_psnrs.append(shown_texture_psnr(out.texture_marked, out.texture, shown))
             render_l1.append((out.render_marked - out.render).abs().mean().reshape(1))
             texture_l1.append((out.texture_marked - out.texture).abs().mean().reshape(1))
             texture_ssims.append(ssim(out.texture_marked, out.texture))

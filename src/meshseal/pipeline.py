@@ -14,7 +14,7 @@ from .data.dataset import vertex_mask
 from .distortions import Distortions2D, Distortions3D, gaussian_blur
 from .framing import boxes_from_mask, crop_boxes
 from .models import WatermarkModel
-from .models.spread import SpreadSpectrumEncoder
+from .models.spread import SpreadSpectrumEncoder, texels_used
 from .render import (Cameras, MeshBatch, MeshRenderer, interpolate, lights_at, pixels_at, relight_fragments,
                      sample_any_lights, sample_any_view_cameras, sample_seed_cameras, sample_seed_lights, unrender)
 from .render.lighting import K_AMBIENT
@@ -35,6 +35,7 @@ class PassOutput:
     decoded_input: torch.Tensor  # (B, 3, S, S) what the decoder saw (informed: UV maps (B, 10, G, G))
     vertex_mask: torch.Tensor | None  # (B, V) real vertices (None: no padding information)
     coverage: torch.Tensor  # (B, H, W) the marked object's interior pixels in the renders
+    shown: torch.Tensor | None = None  # (B, 1, H, W) the texels a spread mark lay on (`batch_texels_used`)
 
 
 def sample_views(n: int, sampler: str, generator: torch.Generator):
@@ -306,8 +307,6 @@ def batch_mark_grid(model: WatermarkModel, batch: dict, index: int = 0) -> int |
 def batch_texels_used(batch: dict) -> torch.Tensor:
     """The texels (B, 1, H, W) each mesh of a dataset batch shows (its padding left out), where a
     spread mark lies, as `Watermarker.embed` finds them (`models.spread.texels_used`)."""
-    from .models.spread import texels_used
-
     height, width = batch["texture"].shape[-2:]
     return torch.stack([texels_used(batch["uvs"][index, :int(batch["n_verts"][index])],
                                     batch["faces"][index, :int(batch["n_faces"][index])], height, width)
@@ -399,8 +398,8 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
     n = positions.shape[0]
     mask = vertex_mask(batch) if "n_verts" in batch else None
     spread = isinstance(model.texture_encoder, SpreadSpectrumEncoder) and mask is not None
-    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, mask,
-                                                             batch_texels_used(batch) if spread else None)
+    shown = batch_texels_used(batch) if spread else None
+    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, mask, shown)
     cameras, lights = sample_views(n, sampler, generator)
     if background is None:
         background = torch.zeros(n, 3)
@@ -440,4 +439,4 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
             framed = distortions_2d(framed, generator)
         logits = model.decode(framed)
     return PassOutput(logits, message, texture, texture_marked, normals, normals_marked, uvs, uvs_marked,
-                      original_image, marked_image, framed, mask, marked.rgba[..., 3].detach() > 0.999)
+                      original_image, marked_image, framed, mask, marked.rgba[..., 3].detach() > 0.999, shown)
