@@ -60,6 +60,20 @@ def _material(bpy, index: int, scene: dict, roughness: float):
     return material
 
 
+def _corner_normals(positions: np.ndarray, faces: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Each face corner's normal (F*3, 3), in Blender's loop order: the vertex normal, turned to the
+    face's front (its winding) where it points behind. Our shading is two-sided and a vertex of a
+    double-sided sheet (each triangle twinned with the opposite winding) has one normal for both
+    twins; Blender shades a face seen from behind with its normal flipped, so the twin whose winding
+    disagrees came out dark, and the two coincident twins z-fought in dark bands that neither our
+    renderer nor Blender's own importers (whose files give each twin its own normal) show."""
+    corners = positions[faces]  # (F, 3, 3)
+    front = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # (F, 3)
+    at_corner = normals[faces]  # (F, 3, 3)
+    sign = np.where(np.einsum("fkc,fc->fk", at_corner, front) < 0, -1.0, 1.0)
+    return (at_corner * sign[..., None]).reshape(-1, 3).astype(np.float32)
+
+
 def _mesh_object(bpy, scene: dict, roughness: float):
     positions, faces = scene["positions"], scene["faces"]
     mesh = bpy.data.meshes.new("mesh")
@@ -69,7 +83,7 @@ def _mesh_object(bpy, scene: dict, roughness: float):
         layer = mesh.uv_layers.new(name="UVMap")
         layer.data.foreach_set("uv", scene["uvs"][faces.ravel()].astype(np.float32).ravel())
     mesh.polygons.foreach_set("use_smooth", np.ones(len(faces), dtype=bool))
-    mesh.normals_split_custom_set_from_vertices(scene["normals"].astype(np.float32).tolist())
+    mesh.normals_split_custom_set(_corner_normals(positions, faces, scene["normals"]).tolist())
     for index in range(len(scene["diffuse"])):
         mesh.materials.append(_material(bpy, index, scene, roughness))
     mesh.polygons.foreach_set("material_index", scene["face_material"].astype(np.int32))
