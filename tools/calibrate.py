@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import math
 import time
 from pathlib import Path
 
@@ -35,12 +36,10 @@ from scipy import stats
 
 import meshseal
 from meshseal import payload
+from meshseal.api import _Reading
 from meshseal.data.dataset import MeshDataset, collate
 from meshseal.distortions import gaussian_blur
-from meshseal.framing import object_mask
-from meshseal.models.spread import bit_weights, soft_bits
-from meshseal.pipeline import random_backgrounds, sample_views, spread_evidence
-from meshseal.register import register
+from meshseal.pipeline import batch_mark_grid, batch_texels_used, random_backgrounds, sample_views, spread_evidence
 from meshseal.render import MeshBatch, MeshRenderer
 
 
@@ -77,10 +76,18 @@ def mesh_batches(dataset: MeshDataset, index: int, device) -> tuple[MeshBatch, d
     return original, batch
 
 
+def pvalues(wm, evidence: torch.Tensor) -> tuple[float, float]:
+    """One picture's detection p-value as `Watermarker.decide` gives it (the likeliest of the grids read,
+    Bonferroni over them) under the exact null, and under the N(0, 1) null for comparison."""
+    soft, weights, tries = wm._best_grid(evidence, None, None)
+    return (min(1.0, tries * float(payload.detection_pvalue(soft, weights))),
+            min(1.0, tries * float(payload.detection_pvalue(soft))))
+
+
 def null_pvalues(wm, dataset, views: int, size: int, seed: int, device, log) -> dict[str, np.ndarray]:
     """Clean pictures' p-values under the exact null (`payload.detection_pvalue` with the picture's
     cell weights), and for comparison under the N(0, 1) model (names ending ', N(0, 1) null')."""
-    model, key_seed = wm.model, payload.key_seed(None)
+    model = wm.model
     renderer, generator = MeshRenderer(), torch.Generator().manual_seed(seed)
     results: dict[str, list] = {}
     for index in range(len(dataset)):
@@ -92,11 +99,11 @@ def null_pvalues(wm, dataset, views: int, size: int, seed: int, device, log) -> 
                 pictures = quantise(renderer(original, cameras, lights, size, size,
                                              random_backgrounds(count, generator).to(device)).image)
                 for name, images in variants(pictures, generator, attacks=False, scale=2.0).items():
-                    evidence = spread_evidence(model, original, images, cameras)
-                    z = soft_bits(model.texture_encoder, evidence, key_seed).double().cpu()
-                    weights = bit_weights(model.texture_encoder, evidence, key_seed).double().cpu()
-                    results.setdefault(name, []).extend(payload.detection_pvalue(z, weights))
-                    results.setdefault(f"{name}, N(0, 1) null", []).extend(payload.detection_pvalue(z))
+                    evidence = spread_evidence(model, original, images, cameras, grids=wm._grids_to_read(original))
+                    for row in evidence.cpu():
+                        exact, gaussian = pvalues(wm, row[None])
+                        results.setdefault(name, []).append(exact)
+                        results.setdefault(f"{name}, N(0, 1) null", []).append(gaussian)
         if log and (index + 1) % 20 == 0:
             log(f"null: {index + 1}/{len(dataset)} meshes, {sum(len(v) for v in results.values())} pictures")
     return {name: np.array(values) for name, values in results.items()}
@@ -108,19 +115,29 @@ def true_positives(wm, dataset, size: int, registered: int, seed: int, device, l
     counts: dict[str, list] = {}
     registration_seconds = []
 
-    def record(name: str, evidence: torch.Tensor, asset: int) -> None:
-        z = soft_bits(model.texture_encoder, evidence, key_seed)[0].double().cpu()
-        weights = bit_weights(model.texture_encoder, evidence, key_seed)[0].double().cpu()
-        decoded = payload.decode(z)
-        counts.setdefault(name, []).append((payload.detected(payload.detection_pvalue(z, weights)),
-                                            decoded.message == asset, payload.detected(payload.detection_pvalue(z))))
+    def record(name: str, readings: list, asset: int) -> None:
+        """The decision on `readings` (one picture, or several pooled; none: refused) as `meshseal
+        detect` makes it, whether its message is the asset's, and the decision under the N(0, 1) null
+        for comparison."""
+        if not readings:
+            counts.setdefault(name, []).append((False, False, False))
+            return
+        detection = wm.decide(readings)
+        soft, _, tries = wm._best_grid(torch.stack([r.evidence for r in readings]).sum(0, keepdim=True), None, None)
+        gaussian = min(1.0, tries * math.prod(r.tries for r in readings) * float(payload.detection_pvalue(soft)))
+        counts.setdefault(name, []).append((bool(detection.detected), payload.decode(soft).message == asset,
+                                            payload.detected(gaussian)))
+
+    def known(evidence: torch.Tensor) -> list:
+        return [_Reading(evidence[0].cpu(), (0.0, 0.0, 0.0), "given", None)]
 
     for index in range(len(dataset)):
         original, batch = mesh_batches(dataset, index, device)
         asset = int(torch.randint(0, 2 ** 32, (1,), generator=generator))
         raw = payload.encode(payload.Message.id(asset), None, wm.n_bits).to(device)[None]
-        with torch.no_grad():
-            texture = model.mark_texture(batch["texture"], raw, 1.0, key_seed)
+        with torch.no_grad():  # marked as `meshseal embed` marks it: the mesh's cell grid, on the texels it shows
+            texture = model.mark_texture(batch["texture"], raw, 1.0, key_seed, batch_mark_grid(model, batch),
+                                         batch_texels_used(batch))
         marked = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces")), texture)
         views = 3 if index < registered else 1
         cameras, lights = sample_views(views, "seed", generator)
@@ -129,23 +146,24 @@ def true_positives(wm, dataset, size: int, registered: int, seed: int, device, l
             pictures = quantise(renderer(marked, cameras, lights, size, size,
                                          random_backgrounds(views, generator).to(device)).image)
             for name, images in variants(pictures[:1], generator, attacks=True).items():
-                record(f"known camera, {name}", spread_evidence(model, original, images, cameras[[0]]), asset)
+                record(f"known camera, {name}", known(spread_evidence(model, original, images, cameras[[0]],
+                                                                      grids=wm._grids_to_read(original))), asset)
         if index >= registered:
             continue
         pooled = []
-        for view in range(views):
-            picture = pictures[view]
-            mask, background = object_mask(picture.permute(1, 2, 0).cpu().numpy())
+        for view in range(views):  # as `meshseal detect --mesh` reads a picture without metadata
+            pixels = pictures[view].permute(1, 2, 0).cpu().numpy()
             started = time.perf_counter()
-            found = register(original, picture, torch.from_numpy(mask).to(device),
-                             torch.from_numpy(background).to(picture))
+            try:
+                reading = wm.read(pixels, original, register=True)
+            except meshseal.MeshsealError:  # refused (no object found): counts as not detected
+                reading = None
             registration_seconds.append(time.perf_counter() - started)
-            with torch.no_grad():
-                evidence = spread_evidence(model, original, picture[None], found.camera)
             if view == 0:
-                record("registered, one picture", evidence, asset)
-            pooled.append(evidence)
-        record("registered, 3 pictures pooled", torch.stack(pooled).sum(0), asset)
+                record("registered, one picture", [wm.look_again(reading, original)] if reading else [], asset)
+            if reading:
+                pooled.append(wm.look_again(reading, original, search=False))  # pooled: no second look, as the CLI
+        record("registered, 3 pictures pooled", pooled, asset)
         if log and (index + 1) % 10 == 0:
             log(f"marked: {index + 1}/{len(dataset)} meshes")
     table = {name: {"tpr": float(np.mean([d for d, _, _ in rows])), "exact_message": float(np.mean([e for _, e, _ in rows])),

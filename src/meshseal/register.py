@@ -36,6 +36,7 @@ COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement a
 FINE_SILHOUETTE_SIGMAS = (1.0, 0.5)  # the picked candidate's silhouette refinement at SEARCH_SIZE
 PICK_MARGIN = 0.7  # another candidate replaces the best-scored one only if its texture misfit is this much lower
 PICK_IOU_SLACK = 0.1  # ... and only if its refined silhouette's IoU is at most this much below the best one's
+TEXTURE_IOU_SLACK = 0.04  # the texture stage's camera is kept only if its silhouette's IoU is at most this much below the start's
 FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-pixel one left this share of the misfit or more
 ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (registered: 0.01-0.03; a wrong view: about 2)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
@@ -656,7 +657,12 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
             camera = _refine_silhouettes(mesh, camera, levels[SEARCH_SIZE], sigma)
         camera = replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
         if texture_refine:
-            camera = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
+            refined = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
+            # Where the original's texture explains the picture poorly (another engine's light and texture
+            # filtering), the texture stage can drift off a pose the silhouette had right: the silhouette
+            # is a second, independent witness, and a move it clearly disagrees with is not taken.
+            if silhouette_iou(mesh, refined, mask) >= silhouette_iou(mesh, camera, mask) - TEXTURE_IOU_SLACK:
+                camera = refined
         return camera
 
     camera = finish(refined[[chosen]])
