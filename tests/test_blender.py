@@ -101,13 +101,14 @@ def test_registration_holds_on_a_workbench_picture_of_the_deck_chair():
     from meshseal.pipeline import sample_views
     from meshseal.register import pose_error, register_with_masks
 
-    mesh = normalize(to_z_up(meshseal.load_mesh(FIXTURES / "sh3d_deckChair" / "deckChair.obj")))
+    chair = meshseal.load_mesh(FIXTURES / "sh3d_deckChair" / "deckChair.obj")
+    mesh = normalize(to_z_up(chair))
     cameras, lights = sample_views(2, "seed", torch.Generator().manual_seed(3))  # experiments/engines.py's views
     cameras, lights = cameras[[0]], lights[[0]]
     picture = make_renderer("workbench").render(mesh, cameras, lights, 256, 256, background=(0.5, 0.5, 0.5))
     pixels = (torch.round(picture[0, ..., :3] * 255) / 255).numpy()
     mask, background = object_mask(pixels, trim=True)
-    original = meshseal.load().original(meshseal.load_mesh(FIXTURES / "sh3d_deckChair" / "deckChair.obj"))
+    original = meshseal.load().original(chair)
     found = register_with_masks(original, torch.from_numpy(pixels).permute(2, 0, 1), [torch.from_numpy(mask)],
                                 torch.from_numpy(background))
     assert pose_error(original, cameras, found.camera, 256, 256) < 0.5

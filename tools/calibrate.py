@@ -76,12 +76,13 @@ def mesh_batches(dataset: MeshDataset, index: int, device) -> tuple[MeshBatch, d
     return original, batch
 
 
-def pvalues(wm, evidence: torch.Tensor) -> tuple[float, float]:
-    """One picture's detection p-value as `Watermarker.decide` gives it (the likeliest of the grids read,
-    Bonferroni over them) under the exact null, and under the N(0, 1) null for comparison."""
-    soft, weights, tries = wm._best_grid(evidence, None, None)
-    return (min(1.0, tries * float(payload.detection_pvalue(soft, weights))),
-            min(1.0, tries * float(payload.detection_pvalue(soft))))
+def pvalues(wm, evidence: torch.Tensor, tries: int = 1) -> tuple[torch.Tensor, float, float]:
+    """Soft bits of one picture's (or a pool's) cell sums (1, C) and its detection p-value as
+    `Watermarker.decide` gives it (the likeliest of the grids read; Bonferroni over them and over the
+    `tries` a second look made) under the exact null, and under the N(0, 1) null for comparison."""
+    soft, weights, grids = wm._best_grid(evidence, None, None)
+    return (soft, min(1.0, grids * tries * float(payload.detection_pvalue(soft, weights))),
+            min(1.0, grids * tries * float(payload.detection_pvalue(soft))))
 
 
 def null_pvalues(wm, dataset, views: int, size: int, seed: int, device, log) -> dict[str, np.ndarray]:
@@ -101,7 +102,7 @@ def null_pvalues(wm, dataset, views: int, size: int, seed: int, device, log) -> 
                 for name, images in variants(pictures, generator, attacks=False, scale=2.0).items():
                     evidence = spread_evidence(model, original, images, cameras, grids=wm._grids_to_read(original))
                     for row in evidence.cpu():
-                        exact, gaussian = pvalues(wm, row[None])
+                        _, exact, gaussian = pvalues(wm, row[None])
                         results.setdefault(name, []).append(exact)
                         results.setdefault(f"{name}, N(0, 1) null", []).append(gaussian)
         if log and (index + 1) % 20 == 0:
@@ -116,19 +117,19 @@ def true_positives(wm, dataset, size: int, registered: int, seed: int, device, l
     registration_seconds = []
 
     def record(name: str, readings: list, asset: int) -> None:
-        """The decision on `readings` (one picture, or several pooled; none: refused) as `meshseal
-        detect` makes it, whether its message is the asset's, and the decision under the N(0, 1) null
-        for comparison."""
+        """The decision on `readings` (`Watermarker.read`'s: one picture, or several pooled; none:
+        refused) as `meshseal detect` makes it, whether its message is the asset's, and the decision
+        under the N(0, 1) null for comparison."""
         if not readings:
             counts.setdefault(name, []).append((False, False, False))
             return
-        detection = wm.decide(readings)
-        soft, _, tries = wm._best_grid(torch.stack([r.evidence for r in readings]).sum(0, keepdim=True), None, None)
-        gaussian = min(1.0, tries * math.prod(r.tries for r in readings) * float(payload.detection_pvalue(soft)))
-        counts.setdefault(name, []).append((bool(detection.detected), payload.decode(soft).message == asset,
+        soft, exact, gaussian = pvalues(wm, torch.stack([r.evidence for r in readings]).sum(0, keepdim=True),
+                                        math.prod(r.tries for r in readings))
+        counts.setdefault(name, []).append((payload.detected(exact), payload.decode(soft).message == asset,
                                             payload.detected(gaussian)))
 
     def known(evidence: torch.Tensor) -> list:
+        """Cell sums (1, C) read with the camera known, as a reading."""
         return [_Reading(evidence[0].cpu(), (0.0, 0.0, 0.0), "given", None)]
 
     for index in range(len(dataset)):
