@@ -15,6 +15,7 @@ from .distortions import Distortions2D, Distortions3D, gaussian_blur
 from .framing import boxes_from_mask, crop_boxes
 from .models import WatermarkModel
 from .models.spread import SpreadSpectrumEncoder, texels_used
+from .models.surface import SurfaceCodeEncoder, read_picture, texel_columns
 from .render import (Cameras, MeshBatch, MeshRenderer, interpolate, lights_at, pixels_at, relight_fragments,
                      sample_any_lights, sample_any_view_cameras, sample_seed_cameras, sample_seed_lights, unrender)
 from .render.lighting import K_AMBIENT
@@ -313,6 +314,35 @@ def batch_texels_used(batch: dict) -> torch.Tensor:
                         for index in range(len(batch["texture"]))])[:, None].to(batch["texture"].device)
 
 
+def batch_texel_columns(batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each texel's column and whether it paints any (B, H, W) each, for every mesh of a dataset batch
+    (its padding left out), where a surface mark lies (`models.surface.texel_columns`)."""
+    height, width = batch["texture"].shape[-2:]
+    pairs = [texel_columns(batch["positions"][index, :int(batch["n_verts"][index])],
+                           batch["normals"][index, :int(batch["n_verts"][index])],
+                           batch["faces"][index, :int(batch["n_faces"][index])],
+                           batch["uvs"][index, :int(batch["n_verts"][index])], height, width)
+             for index in range(len(batch["texture"]))]
+    device = batch["texture"].device
+    return torch.stack([c for c, _ in pairs]).to(device), torch.stack([p for _, p in pairs]).to(device)
+
+
+def surface_evidence(model: WatermarkModel, pictures: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """A surface model's soft bits (B, N) of pictures (B, 3, H, W) as 8-bit files hold them, the
+    object found from the plain background as `meshseal detect` finds it (`alpha` is ignored but for
+    pictures whose background is not plain)."""
+    from .framing import object_mask
+
+    softs = []
+    for picture, coverage in zip(pictures, alpha):
+        image = (torch.round(picture.clamp(0, 1) * 255) / 255).permute(1, 2, 0).cpu().numpy()
+        mask, _ = object_mask(image)
+        if mask.sum() == 0:
+            mask = coverage.cpu().numpy() > 0.5
+        softs.append(read_picture(model.texture_encoder, image, mask))
+    return torch.stack(softs).to(pictures.device)
+
+
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
                     grids: tuple[int, ...] | None = None) -> torch.Tensor:
@@ -398,8 +428,14 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
     n = positions.shape[0]
     mask = vertex_mask(batch) if "n_verts" in batch else None
     spread = isinstance(model.texture_encoder, SpreadSpectrumEncoder) and mask is not None
+    surface = isinstance(model.texture_encoder, SurfaceCodeEncoder)
     shown = batch_texels_used(batch) if spread else None
-    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, mask, shown)
+    columns = batch_texel_columns(batch) if surface else None
+    normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message, mask, shown,
+                                                             columns)
+    if surface:
+        shown = columns[1][:, None]
+    height, width = (render_size, render_size) if isinstance(render_size, int) else render_size
     cameras, lights = sample_views(n, sampler, generator)
     if background is None:
         background = torch.zeros(n, 3)
@@ -411,7 +447,7 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
     if distortions_3d is not None:
         distorted_positions, distorted_normals, distorted_faces = distortions_3d(positions, normals_marked, faces, generator)
     marked = renderer(MeshBatch.from_tensors(distorted_positions, distorted_normals, uvs_marked, distorted_faces,
-                                             texture_marked), cameras, lights, render_size, render_size, background)
+                                             texture_marked), cameras, lights, height, width, background)
     original_image = None
     if render_original:
         after = generator.get_state()
@@ -421,18 +457,21 @@ def run_pass(model: WatermarkModel, batch: dict, message: torch.Tensor, renderer
             if distortions_3d is not None:
                 p, nr, f = distortions_3d(positions, normals, faces, generator)
             original_image = renderer(MeshBatch.from_tensors(p, nr, uvs, f, texture), cameras, lights,
-                                      render_size, render_size, background).image
+                                      height, width, background).image
         generator.set_state(after)
     marked_image = marked.image
     if model.informed:
         picture = marked_image if distortions_2d is None else distortions_2d(marked_image, generator)
         original_mesh = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
-        seen_from = jitter_cameras(cameras, unrender_jitter, render_size, generator)
+        seen_from = jitter_cameras(cameras, unrender_jitter, height, generator)
         if model.config.decoder == "matched":
             framed, logits = picture, read_bits(model, original_mesh, picture, seen_from)
         else:
             framed = uv_maps(original_mesh, picture, seen_from, model.config.uv_grid, original_image, reference_mix)
             logits = model.decode(framed)
+    elif surface:  # the whole picture, read as a file holds it
+        framed = marked_image if distortions_2d is None else distortions_2d(marked_image, generator)
+        logits = surface_evidence(model, framed, marked.rgba[..., 3])
     else:
         framed = frame(marked_image, marked.rgba[..., 3], model.config.frame_size, background)
         if distortions_2d is not None:

@@ -65,10 +65,12 @@ def register(subparsers) -> None:
     evaluate.add_argument("--meshes", type=int, default=None, help="at most this many meshes (default all)")
     evaluate.add_argument("--protocol", choices=("seed",), default=None,
                           help="seed: the paper's protocol (its camera and light ranges, meshes with spherical UVs "
-                               "and noise or real textures: --sampler seed --texture-kinds noise,real)")
+                               "and noise or real textures, 600 x 400 pictures: --sampler seed --texture-kinds "
+                               "noise,real)")
     evaluate.add_argument("--sampler", choices=("seed", "any"), default=None,
                           help="camera/light ranges (default seed)")
-    evaluate.add_argument("--size", type=positive_int(2048), default=128, help="render size (default 128)")
+    evaluate.add_argument("--size", type=positive_int(2048), default=None,
+                          help="square render size (default 128; --protocol seed: the paper's 600 x 400)")
     evaluate.add_argument("--distortion-3d", type=float, default=0.0, help="3D distortion strength (0..1)")
     evaluate.add_argument("--distortion-2d", type=float, default=0.0, help="2D attack strength (0..1)")
     evaluate.add_argument("--texture-kinds", default=None,
@@ -439,6 +441,7 @@ def run_eval(args) -> int:
                                 "and --texture-kinds own")
         kinds = kinds or ["noise", "real"]
     args.sampler = args.sampler or "seed"
+    size = args.size or ((400, 600) if args.protocol == "seed" and not args.register else 128)
     dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
     if len(dataset) == 0:
         kinds_note = f" of texture kinds {','.join(kinds)}" if kinds else ""
@@ -447,14 +450,15 @@ def run_eval(args) -> int:
         if not watermarker.informed:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
         log = None if args.json else print
-        metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(args.size, 64),
+        metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(size, 64),
                                       args.sampler, log, views=args.views)
     else:
-        metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, args.size, args.sampler,
+        metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
                            distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None)
     metrics = {"model": watermarker.name, "split": args.split, "sampler": args.sampler,
-               "protocol": args.protocol or "ours", "texture_kinds": kinds or "all"} | metrics
+               "protocol": args.protocol or "ours", "texture_kinds": kinds or "all",
+               "size": list(size) if isinstance(size, tuple) else size} | metrics
     if args.json:
         print(json.dumps(metrics))
     else:

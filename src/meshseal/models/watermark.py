@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from .spread import SpreadSpectrumEncoder
+from .surface import SurfaceCodeEncoder
 from .decoders import HiddenDecoder, ResidualCNNDecoder, SimpleCNNDecoder, UVDecoder
 from .texture_encoders import HiddenTextureEncoder, UNetTextureEncoder
 from .vertex_encoders import PointNetVertexEncoder
@@ -21,7 +22,7 @@ class ModelConfig:
 
     n_bits: int = 32
     strategy: str = "texture"  # vertex | texture | vertex+texture
-    texture_encoder: str = "hidden"  # hidden | unet | spread (keyed spread spectrum, see models/spread.py)
+    texture_encoder: str = "hidden"  # hidden | unet | spread (keyed spread spectrum, see models/spread.py) | surface (models/surface.py)
     texture_channels: int = 64
     texture_blocks: int = 4
     texture_downsample: int = 1
@@ -31,7 +32,7 @@ class ModelConfig:
     texture_size: int = 128
     texture_tile: int = 0  # > 0: a learned periodic carrier of this period (in working-size texels)
     texture_tile_channels: int = 8
-    chips: int = 128  # spread: cells per side of the UV square, each carrying one bit with a random sign
+    chips: int = 128  # spread: cells per side of the UV square, each carrying one bit with a random sign; surface: cells along x
     coarse_chips: int = 64  # spread: the grid of meshes whose `chips` cells would be under coarse_below px (0: never)
     coarse_below: float = 0.6  # spread: ... in a standard 256^2 view (models.spread.cell_pixels)
     fine_chips: int = 512  # spread: the grid of meshes whose `chips` cells would be over fine_above px (0: never)
@@ -45,7 +46,7 @@ class ModelConfig:
     vertex_width: int = 64
     normal_strength: float = 0.05
     uv_strength: float = 0.002
-    decoder: str = "hidden"  # hidden | simple | residual (blind) | uv (informed, UVDecoder) | matched (spread)
+    decoder: str = "hidden"  # hidden | simple | residual (blind) | uv (informed, UVDecoder) | matched (spread) | surface (blind)
     decoder_channels: int = 64
     decoder_blocks: int = 7
     decoder_stem_stride: int = 1
@@ -88,6 +89,10 @@ class WatermarkModel(nn.Module):
                                                              config.activity_window, config.activity_floor,
                                                              config.pattern_seed, config.coarse_chips, config.coarse_below,
                                                              config.fine_chips, config.fine_above)
+            elif config.texture_encoder == "surface":
+                self.texture_encoder = SurfaceCodeEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
+                                                          config.activity_window, config.activity_floor,
+                                                          config.pattern_seed)
             elif config.texture_encoder == "unet":
                 self.texture_encoder = UNetTextureEncoder(n, size=config.texture_size, strength=config.texture_strength)
                 self.texture_encoder.rms = config.texture_rms
@@ -114,6 +119,10 @@ class WatermarkModel(nn.Module):
             if config.texture_encoder != "spread" or config.strategy != "texture":
                 raise ValueError("the matched-filter decoder reads the spread texture encoder's mark alone")
             self.decoder = None
+        elif config.decoder == "surface":
+            if config.texture_encoder != "surface" or config.strategy != "texture":
+                raise ValueError("the surface decoder reads the surface texture encoder's mark alone")
+            self.decoder = None
         else:
             raise ValueError(f"unknown decoder '{config.decoder}'")
 
@@ -126,27 +135,33 @@ class WatermarkModel(nn.Module):
         """Where the model lives (a spread-spectrum model has buffers but no parameters)."""
         return next(iter([*self.parameters(), *self.buffers()])).device
 
-    def embed(self, positions, normals, uvs, texture, message, vertex_mask=None, used=None):
+    def embed(self, positions, normals, uvs, texture, message, vertex_mask=None, used=None, columns=None):
         """Watermark a batch: returns (normals, uvs, texture), each unchanged where its encoder is off.
-        `used` (B, 1, H, W): the texels each mesh shows, where a spread mark lies (`texels_used`)."""
+        `used` (B, 1, H, W): the texels each mesh shows, where a spread mark lies (`texels_used`);
+        `columns`: (columns, painted) (B, H, W) each, where a surface mark lies (`surface.texel_columns`)."""
         if self.vertex_encoder is not None:
             normals, uvs = self.vertex_encoder(positions, normals, uvs, message, vertex_mask)
         if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
             texture = self.texture_encoder(texture, message, used=used)
+        elif isinstance(self.texture_encoder, SurfaceCodeEncoder):
+            texture = self.texture_encoder(texture, message, *columns)
         elif self.texture_encoder is not None:
             texture = self.texture_encoder(texture, message)
         return normals, uvs, texture
 
     def mark_texture(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
                      key_seed: int | None = None, chips: int | None = None,
-                     used: torch.Tensor | None = None) -> torch.Tensor:
-        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread mark,
-        `key_seed` picks its keyed pattern, `chips` its cell grid (the mesh's: `mark_grid`) and `used`
-        the texels it lies on (the mesh's: `models.spread.texels_used`)."""
+                     used: torch.Tensor | None = None, columns=None) -> torch.Tensor:
+        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread or
+        surface mark, `key_seed` picks a spread mark's keyed pattern, `chips` its cell grid (the
+        mesh's: `mark_grid`) and `used` the texels it lies on (the mesh's: `models.spread.texels_used`);
+        `columns` (columns, painted) (B, H, W) where a surface mark lies (`models.surface.texel_columns`)."""
         if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
             return self.texture_encoder(texture, message, strength, key_seed, chips, used)
+        if isinstance(self.texture_encoder, SurfaceCodeEncoder):
+            return self.texture_encoder(texture, message, *columns, strength=strength)
         if strength != 1.0:
-            raise ValueError("only spread-spectrum models take a strength (learned marks have a trained power)")
+            raise ValueError("only spread-spectrum and surface models take a strength (learned marks have a trained power)")
         return self.texture_encoder(texture, message)
 
     def mark_grid(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> int | None:
