@@ -41,16 +41,27 @@ def main() -> int:
     metadata = read_metadata(source)
     model = load_model(source)
     dataset = MeshDataset(args.data, "test", seed=args.seed)
+    surface = model.config.decoder == "surface"  # blind, read from the seed paper's 600 x 400 pictures
+    size = (400, 600) if surface else args.size
+    size_text = "600 x 400 (the paper's)" if surface else f"{args.size}^2"
     rows = {}
-    settings = [("seed views, no attack", "seed", None, None, 0.0),
-                ("any view, no attack", "any", None, None, 0.0),
-                ("seed views, 3D distortions", "seed", Distortions3D(1.0), None, 0.0),
-                ("seed views, 2D attacks (strength 0.5)", "seed", None, Distortions2D(0.5), 0.0)]
+    settings = [("seed views, no attack", "seed", None, None, 0.0, dataset),
+                ("any view, no attack", "any", None, None, 0.0, dataset),
+                ("seed views, 3D distortions", "seed", Distortions3D(1.0), None, 0.0, dataset),
+                ("seed views, 2D attacks (strength 0.5)", "seed", None, Distortions2D(0.5), 0.0, dataset)]
     if model.informed:
-        settings.append((f"seed views, camera off by ~1 px ({args.size}^2)", "seed", None, None, 1.0))
-    for label, sampler, d3, d2, jitter in settings:
+        settings.append((f"seed views, camera off by ~1 px ({args.size}^2)", "seed", None, None, 1.0, dataset))
+    if surface:  # the paper's protocol first (`meshseal eval --protocol seed`), then real UV atlases
+        seed_items = MeshDataset(args.data, "test", seed=args.seed, texture_kinds=("noise", "real"))
+        own_items = MeshDataset(args.data, "test", seed=args.seed, texture_kinds=("own",))
+        settings = [("seed protocol: spherical UVs, noise or real textures, seed views", "seed", None, None, 0.0, seed_items),
+                    ("own UV atlases, seed views", "seed", None, None, 0.0, own_items),
+                    ("own UV atlases, any view", "any", None, None, 0.0, own_items),
+                    ("seed protocol, 3D distortions", "seed", Distortions3D(1.0), None, 0.0, seed_items),
+                    ("seed protocol, 2D attacks (strength 0.5)", "seed", None, Distortions2D(0.5), 0.0, seed_items)]
+    for label, sampler, d3, d2, jitter, items in settings:
         torch.manual_seed(args.seed)
-        rows[label] = evaluate(model, dataset, None, args.views, args.seed, args.size, sampler,
+        rows[label] = evaluate(model, items, None, args.views, args.seed, size, sampler,
                                distortions_3d=d3, distortions_2d=d2, unrender_jitter=jitter)
         print(label, json.dumps(rows[label]), flush=True)
     registered, shipped = None, None
@@ -84,6 +95,16 @@ def main() -> int:
                         "original mesh relit to match it "
                         "(detection needs the original mesh and the picture's camera: from the PNG's metadata, or "
                         "registered). Its soft bits are z-scores (given the picture, a Rademacher sum per bit without a mark: exact p-values, `payload.detection_pvalue`)")
+    elif config["decoder"] == "surface":
+        architecture = (f"keyed code along the object's x (`models/surface.py`): {config['chips']} cells across the object "
+                        "as the seed's cameras see it, each bit a scrambled Walsh-Hadamard code over them, laid in the "
+                        "texture through the surface point each texel paints, colour "
+                        f"`{config['mark_colour']}`, amplitude shaped by local texture activity (window "
+                        f"{config['activity_window']}, floor {config['activity_floor']}), texture PSNR "
+                        f"{config['texture_psnr']} dB over the texels the mesh paints at strength 1; read **blind**, from "
+                        "the picture alone: the object's column range, the chroma high-passed along rows, averaged per "
+                        "cell and correlated with the codes. It needs the seed paper's views (cameras at x = 0, z up): "
+                        "a view from the side shows the code edge-on")
     elif config["decoder"] == "uv":
         architecture = (f"informed decoder `uv` ({config['decoder_channels']} channels) reading the picture un-rendered "
                         f"onto a {config['uv_grid']}^2 UV grid of the original mesh (detection needs the original mesh "
@@ -92,7 +113,7 @@ def main() -> int:
         architecture = (f"decoder `{config['decoder']}` ({config['decoder_channels']} channels, {config['decoder_blocks']} "
                         f"blocks, stem stride {config['decoder_stem_stride']}), decoding on a {config['frame_size']}^2 "
                         "object-centred frame")
-    if config["texture_encoder"] != "spread":
+    if config["texture_encoder"] not in ("spread", "surface"):
         mark = (f"fixed RMS {config['texture_rms']}" if config.get("texture_rms", 0) > 0
                 else f"residual bound {config['texture_strength']}")
         architecture = (f"texture encoder `{config['texture_encoder']}` ({config['texture_channels']} channels, "
@@ -110,7 +131,7 @@ def main() -> int:
         f"# Model card: `{args.name}`",
         "",
         f"- Payload: **{config['n_bits']} raw bits** ({payload}), strategy `{config['strategy']}`; file "
-        f"`{target.name}` ({target.stat().st_size / 1e6:.2f} MB, safetensors).",
+        f"`{target.name}` ({target.stat().st_size / 1e3:.1f} kB, safetensors).",
         f"- Architecture: {architecture}.",
         f"- Built by: `meshseal train --config configs/{train_config.get('name', args.name)}.yaml --out {args.run}` "
         f"{built}.",
@@ -120,13 +141,16 @@ def main() -> int:
         f"- Card written by: `python tools/ship_model.py --run {args.run} --data {args.data} --name {args.name} "
         f"--views {args.views} --size {args.size} --seed {args.seed} --register-meshes {args.register_meshes}`",
         "",
-        f"## Test split ({rows['seed views, no attack']['n_meshes']} meshes x {args.views} views, "
-        f"differentiable renderer, {args.size}^2 renders, camera known)",
+        (f"## Test split ({args.views} view(s) per mesh, " if surface else
+         f"## Test split ({next(iter(rows.values()))['n_meshes']} meshes x {args.views} views, ")
+        + f"differentiable renderer, {size_text} renders, "
+        + ("read from the picture alone, object found from the plain background)" if surface else "camera known)"),
         "",
         "| setting | bit acc | std | object PSNR (dB) | object SSIM | object FLIP | texture PSNR, shown texels (dB) | texture PSNR (dB) | frame PSNR (dB) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for label, m in rows.items():
+        label = f"{label} ({m['n_meshes']} meshes)" if surface else label
         lines.append(f"| {label} | {m['bit_acc']:.4f} | {m['bit_acc_std']:.4f} | {m['psnr_object']:.2f} | "
                      f"{m['ssim_object']:.4f} | {m['flip_object']:.4f} | {m['psnr_texture_shown']:.2f} | {m['psnr_texture']:.2f} | "
                      f"{m['psnr_render']:.2f} |")
@@ -154,6 +178,14 @@ def main() -> int:
                   f"0.5 px or IoU >= 0.95) {registered['registration_success']:.3f}, pose error median {pose['median']} px, "
                   f"90th percentile {pose['p90']} px, {registered['seconds_per_picture']:.1f} s per picture."
                   + (" This row too marks each mesh as `meshseal embed` does." if shipped is not None else "")]
+    if surface:
+        lines += ["", "Each picture is read as `meshseal detect --model NAME PICTURE` reads it (no `--mesh`, no metadata): "
+                  "the object found from the plain background, the bits from its columns. A blind model reports raw "
+                  "bits; `--expect TEXT` / `--expect-id N` (models with a payload schema) test one known message: the "
+                  "binomial p-value of the bits that agree with it, detected only if the error-correcting code also "
+                  "reads that message. The mark is visible where the texture is flat (chroma bands that follow the "
+                  "object's x: docs/preview_blind_bunny.png): it buys blind reading at the paper's PSNR, and the "
+                  "informed `default` stays the invisible choice when the original mesh is at hand."]
     lines += ["", "Object PSNR, SSIM and FLIP compare the marked and original mesh rendered from the same view and light "
               "over the object's pixels (8-bit values); frame PSNR is over the whole frame, as the seed paper reports "
               "(the background inflates it). Seed paper (Table 4/5): 0.897 bit accuracy at 8 bits and 0.636 at 32 bits "

@@ -248,7 +248,9 @@ class Watermarker:
         marked = mesh.copy()
         textured = [m for m in marked.materials if m.texture is not None]
         encoder = self.model
-        if encoder.texture_encoder is not None and textured and marked.uvs is not None:
+        if self.surface and textured and marked.uvs is not None:
+            self._mark_surface(mesh, marked, message, strength)
+        elif encoder.texture_encoder is not None and textured and marked.uvs is not None:
             grid = self.mark_grid(marked)
             palette = palette_share(marked.positions, _textured_faces(marked), marked.uvs)
             if palette >= PALETTE_WARNING:
@@ -282,6 +284,27 @@ class Watermarker:
             if marked.uvs is not None:
                 marked.uvs = new_uvs[0].cpu()
         return marked
+
+    def _mark_surface(self, mesh: Mesh, marked: Mesh, message: torch.Tensor, strength: float) -> None:
+        """Each texture of `marked` (a copy of `mesh`) carrying a surface mark: its texels traced to the
+        surface points they paint in the canonical frame, where the seed's cameras look from."""
+        from .models.surface import texel_columns
+
+        canonical = normalize(to_z_up(replace(mesh, source=None)))
+        for index, material in enumerate(marked.materials):
+            if material.texture is None:
+                continue
+            texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
+            columns, painted = texel_columns(canonical.positions, canonical.normals,
+                                             marked.faces[marked.face_material == index], marked.uvs, *texture.shape[-2:])
+            marked_texture = self.model.mark_texture(texture, message, strength,
+                                                     columns=(columns[None].to(self.device), painted[None].to(self.device)))
+            material.texture = marked_texture[0].permute(1, 2, 0).cpu()
+
+    @property
+    def surface(self) -> bool:
+        """True for blind surface-code models (`models.surface`)."""
+        return self.model.config.decoder == "surface"
 
     def _key_seed(self, key) -> int | None:
         """The keyed pattern's seed (spread-spectrum models; None for learned ones, which have no key)."""
@@ -471,7 +494,11 @@ class Watermarker:
         else:
             box = boxes_from_mask(torch.from_numpy(mask)[None])
             background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)
-            if original is None:
+            if original is None and self.surface:
+                from .models.surface import read_picture
+
+                evidence = read_picture(self.model.texture_encoder, pixels.clip(0, 1), mask > 0.5)
+            elif original is None:
                 framed = crop_boxes(tensor, box, self.model.config.frame_size, background_tensor)
                 evidence = self.model.decode(framed.clamp(0, 1))[0].cpu()
             else:

@@ -157,16 +157,19 @@ def _whiten_across(signal: np.ndarray, mask: np.ndarray, sigma: float) -> np.nda
     return np.where(mask, detail / np.sqrt(energy + 1e-8), 0.0)
 
 
-def read_picture(encoder: SurfaceCodeEncoder, image: np.ndarray, mask: np.ndarray) -> torch.Tensor:
+def read_picture(encoder: SurfaceCodeEncoder, image: np.ndarray, mask: np.ndarray,
+                 signal: np.ndarray | None = None) -> torch.Tensor:
     """Soft bits (N,) of a picture (H, W, 3) in [0, 1] whose object covers `mask` (H, W) bool: the
     object's pixels binned by their place in its column range, shifted a little, and the shift whose
-    codes correlate most kept (sign: the bit)."""
+    codes correlate most kept (sign: the bit). `signal` (H, W): another whitened chroma to read
+    instead of the row high-pass's (experiments)."""
     rows, columns = np.nonzero(mask)
     if len(columns) == 0:
         return torch.zeros(encoder.n_bits)
     left, right = columns.min() - 0.5, columns.max() + 0.5
-    sigma = max(1.0, HIGHPASS * (right - left))
-    signal = _whiten_across(image.astype(np.float64) @ encoder.colour.cpu().numpy().astype(np.float64), mask, sigma)
+    if signal is None:
+        chroma = image.astype(np.float64) @ encoder.colour.cpu().numpy().astype(np.float64)
+        signal = _whiten_across(chroma, mask, max(1.0, HIGHPASS * (right - left)))
     bins = encoder.cells * OVERSAMPLE
     where = np.clip(np.floor((columns + 0.5 - left) / (right - left) * bins).astype(int), 0, bins - 1)
     total = np.bincount(where, signal[rows, columns], bins)
