@@ -294,9 +294,12 @@ class Watermarker:
         for index, material in enumerate(marked.materials):
             if material.texture is None:
                 continue
+            faces = marked.faces[marked.face_material == index]
+            if len(faces) == 0:  # a texture no face uses shows nowhere
+                continue
             texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
-            columns, painted = texel_columns(canonical.positions, canonical.normals,
-                                             marked.faces[marked.face_material == index], marked.uvs, *texture.shape[-2:])
+            columns, painted = texel_columns(canonical.positions, canonical.normals, faces, marked.uvs,
+                                             *texture.shape[-2:])
             marked_texture = self.model.mark_texture(texture, message, strength,
                                                      columns=(columns[None].to(self.device), painted[None].to(self.device)))
             material.texture = marked_texture[0].permute(1, 2, 0).cpu()
