@@ -11,6 +11,10 @@ camera for comparison. The paper's Table 9 (decoder trained through its own rend
 
     python experiments/engines.py --out docs/engines.md [--engines ours gl cycles eevee workbench]
         [--data data --meshes 60] [--views 2] [--size 256] [--sampler seed] [--jsonl FILE [--report]]
+
+With `--model blind8` (or `blind`) the blind model instead, in the seed paper's protocol: the test items
+with spherical UVs and a noise or real texture (`--data`), random raw bits, the paper's 600 x 400
+pictures, each read alone (no mesh, no metadata): bit accuracy and visibility per engine.
 """
 
 from __future__ import annotations
@@ -51,7 +55,8 @@ def meshes(args):
         return
     from meshseal.data.dataset import MeshDataset
 
-    dataset = MeshDataset(args.data, "test", seed=args.seed)
+    blind = not meshseal.load(args.model).informed
+    dataset = MeshDataset(args.data, "test", seed=args.seed, texture_kinds=("noise", "real") if blind else None)
     for index in range(min(args.meshes, len(dataset))):
         item = dataset[index]
         yield item["id"], item_mesh(item)
@@ -77,6 +82,7 @@ def png_without_metadata(pixels: torch.Tensor) -> Image.Image:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--engines", nargs="+", default=["ours", "gl", "cycles", "eevee", "workbench"])
+    parser.add_argument("--model", default=None, help="shipped model (default: the default); blind ones read alone")
     parser.add_argument("--data", type=Path, default=None, help="dataset: its test split instead of the fixtures")
     parser.add_argument("--meshes", type=int, default=60)
     parser.add_argument("--views", type=int, default=2)
@@ -99,12 +105,15 @@ def main() -> None:
                 rows[row["engine"]].append(row)
                 done.add((row["mesh"], row["engine"], row["view"]))
     if args.report:
-        table = summary(rows, args, None)
+        wm = meshseal.load(args.model)
+        table = summary(rows, args, None) if wm.informed else blind_summary(wm, rows, args, None)
         print(table)
         if args.out:
             args.out.write_text(table)
         return
-    wm = meshseal.load()
+    wm = meshseal.load(args.model)
+    if not wm.informed:
+        return blind_table(wm, rows, done, args)
     renderers = {engine: make_renderer(engine) for engine in args.engines}
     log = args.jsonl.open("a") if args.jsonl else None
     started = time.perf_counter()
@@ -161,6 +170,57 @@ def main() -> None:
     print(table)
     if args.out:
         args.out.write_text(table)
+
+
+def blind_table(wm, rows: dict[str, list[dict]], done: set, args) -> None:
+    """The blind model per engine in the seed paper's protocol (see the module's docstring)."""
+    renderers = {engine: make_renderer(engine) for engine in args.engines}
+    log = args.jsonl.open("a") if args.jsonl else None
+    started = time.perf_counter()
+    for index, (name, mesh) in enumerate(meshes(args)):
+        generator = torch.Generator().manual_seed(args.seed * 7919 + index)
+        bits = torch.randint(0, 2, (wm.n_bits,), generator=generator)
+        marked = wm.embed(mesh, bits="".join(map(str, bits.tolist())))
+        cameras, lights = sample_views(args.views, "seed", generator)
+        for engine, renderer in renderers.items():
+            if all((name, engine, view) in done for view in range(args.views)):
+                continue
+            with torch.no_grad():
+                pictures = {label: renderer.render(normalize(to_z_up(replace(m, source=None))), cameras, lights, 400, 600,
+                                                   background=BACKGROUND)
+                            for label, m in (("original", mesh), ("marked", marked))}
+            coverage = pictures["original"][..., 3] > 0.5
+            for view in range(args.views):
+                seen = visibility(pictures["original"][[view], ..., :3].permute(0, 3, 1, 2),
+                                  pictures["marked"][[view], ..., :3].permute(0, 3, 1, 2), coverage[[view]])
+                result = wm.detect(png_without_metadata(pictures["marked"][view, ..., :3].permute(2, 0, 1)))
+                row = {"mesh": name, "engine": engine, "view": view, **seen,
+                       "bit_acc": float(np.mean([int(b) for b in result.bits] == bits.numpy()))}
+                rows[engine].append(row)
+                if log:
+                    log.write(json.dumps(row) + "\n")
+                    log.flush()
+                print(f"{name[:36]:36s} {engine:9s} view {view}: bits {row['bit_acc']:.3f} object PSNR "
+                      f"{seen['psnr_object']:.2f} FLIP {seen['flip_object']:.4f}", flush=True)
+    table = blind_summary(wm, rows, args, time.perf_counter() - started)
+    print(table)
+    if args.out:
+        args.out.write_text(table)
+
+
+def blind_summary(wm, rows: dict[str, list[dict]], args, seconds: float | None) -> str:
+    took = "" if seconds is None else f" {seconds / 60:.1f} minutes."
+    source = "textured fixtures" if args.data is None else "test meshes with spherical UVs and a noise or real texture"
+    lines = [f"Blind model `{wm.name}` ({wm.n_bits} bits): {len({r['mesh'] for g in rows.values() for r in g})} "
+             f"{source}, {args.views} seed view(s) each, 600 x 400, grey "
+             f"background, each picture read alone (no mesh, no metadata).{took}", "",
+             "| engine | pictures | bit acc. | object PSNR | object FLIP | paper (Table 9) |", "|---|---|---|---|---|---|"]
+    for engine, group in rows.items():
+        if group:
+            mean = lambda key: float(np.mean([r[key] for r in group]))  # noqa: E731
+            lines.append(f"| {engine} | {len(group)} | {mean('bit_acc'):.3f} | {mean('psnr_object'):.2f} | "
+                         f"{mean('flip_object'):.4f} | {PAPER_TABLE_9.get(engine, '')} |")
+    return "\n".join(lines) + "\n"
 
 
 def summary(rows: dict[str, list[dict]], args, seconds: float) -> str:
