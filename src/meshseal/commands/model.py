@@ -70,7 +70,8 @@ def register(subparsers) -> None:
     evaluate.add_argument("--sampler", choices=("seed", "any"), default=None,
                           help="camera/light ranges (default seed)")
     evaluate.add_argument("--size", type=positive_int(2048), default=None,
-                          help="square render size (default 128; --protocol seed: the paper's 600 x 400)")
+                          help="square render size (default 128; --protocol seed and the blind surface models: "
+                               "the paper's 600 x 400)")
     evaluate.add_argument("--distortion-3d", type=float, default=0.0, help="3D distortion strength (0..1)")
     evaluate.add_argument("--distortion-2d", type=float, default=0.0, help="2D attack strength (0..1)")
     evaluate.add_argument("--texture-kinds", default=None,
@@ -441,7 +442,8 @@ def run_eval(args) -> int:
                                 "and --texture-kinds own")
         kinds = kinds or ["noise", "real"]
     args.sampler = args.sampler or "seed"
-    size = args.size or ((400, 600) if args.protocol == "seed" and not args.register else 128)
+    paper_size = (args.protocol == "seed" or watermarker.model.config.decoder == "surface") and not args.register
+    size = args.size or ((400, 600) if paper_size else 128)  # blind surface models read the paper's pictures
     dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
     if len(dataset) == 0:
         kinds_note = f" of texture kinds {','.join(kinds)}" if kinds else ""
