@@ -4,8 +4,9 @@ The seed paper's cameras all stand at x = 0 looking at the object with z up (onl
 the elevation vary), so a picture's columns follow the object's x whatever its shape, its UVs or the
 elevation. The texture carries the bits along x: every texel is traced to the surface point it paints,
 the object's x range (as seen from the middle of the seed's camera range, perspective included) is cut
-into `cells` cells, and each bit is a keyed, scrambled Walsh-Hadamard code over them, in blue-yellow
-chroma under a just-noticeable-difference mask. A picture is read with no mesh: the object's column
+into `cells` cells, and each bit is a scrambled Walsh-Hadamard code over them (drawn from the config's
+`pattern_seed`; a user's key whitens the payload bits, not this pattern), in blue-yellow chroma under a
+just-noticeable-difference mask. A picture is read with no mesh: the object's column
 range is the object's x range, the chroma is high-passed along rows (the mark is constant down a
 column, the host is not), averaged per cell and correlated with each bit's code. Nothing is learned.
 
