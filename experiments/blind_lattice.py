@@ -33,14 +33,8 @@ from meshseal.framing import object_mask
 from meshseal.mesh import spherical_uv
 from meshseal.metrics import visibility
 from meshseal.models.spread import COLOURS, activity_mask
+from meshseal.models.surface import _hadamard
 from meshseal.render import MeshBatch, MeshRenderer, sample_seed_cameras, sample_seed_lights
-
-
-def _hadamard(n: int) -> np.ndarray:
-    matrix = np.ones((1, 1))
-    while matrix.shape[0] < n:
-        matrix = np.block([[matrix, matrix], [matrix, -matrix]])
-    return matrix
 
 
 def _unimodular(limit: int = 1) -> list[np.ndarray]:

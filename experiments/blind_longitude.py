@@ -23,11 +23,12 @@ import time
 import numpy as np
 import torch
 import torch.nn.functional as F
-from blind_lattice import _hadamard, render_pair, seed_protocol_items, sphere_items, whiten
+from blind_lattice import render_pair, seed_protocol_items, sphere_items, whiten
 from torch import nn
 
 from meshseal.framing import object_mask
 from meshseal.models.spread import COLOURS, activity_mask
+from meshseal.models.surface import _hadamard
 
 OVERSAMPLE = 4  # detection bins per u-cell, for the shift search
 

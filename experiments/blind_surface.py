@@ -40,18 +40,7 @@ def uv_only_columns(positions, normals, faces, uvs, height, width):
 def shared_texels(positions, normals, faces, uvs, height, width) -> float:
     """How much the texels the seed's views show disagree on their column: the mean, over the object's
     seen pixels, of |column - the mean column of the texel it shows| (0: every texel paints one place)."""
-    from meshseal.render import MeshBatch
-    from meshseal.render.cameras import cameras_from_eyes
-    from meshseal.render.unrender import surface_at_pixels, surface_points
-
-    eyes = torch.tensor([[0.0, y, z] for y in (-3.0, -2.5, -2.0) for z in (2.0, 3.0, 4.0)])
-    cameras = cameras_from_eyes(eyes)
-    batch = MeshBatch.from_tensors(positions[None], normals[None], uvs[None], faces, torch.zeros(1, 3, 1, 1))
-    fragments, uv, _ = surface_at_pixels(batch, cameras, *surface.VIEW_SIZE)
-    points, _ = surface_points(batch, fragments, cameras)
-    column = reference_columns(points.double(), positions.double())
-    index = ((1.0 - (uv[:, 1] % 1.0)) * height).long().clamp(0, height - 1) * width + \
-        ((uv[:, 0] % 1.0) * width).long().clamp(0, width - 1)
+    column, index = surface.seen_texels(positions, normals, faces, uvs, height, width)
     total = torch.zeros(height * width, dtype=torch.float64).index_add_(0, index, column)
     count = torch.zeros(height * width, dtype=torch.float64).index_add_(0, index, torch.ones_like(column))
     return float((column - (total / count.clamp_min(1.0))[index]).abs().mean())

@@ -76,10 +76,11 @@ def _uv_raster(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, 
     return grid.reshape(height, width, 3).float(), painted.reshape(height, width)
 
 
-def _seen(positions: torch.Tensor, normals: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor,
-          height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """`reference_columns` of the points each texel (H, W) shows from a grid of the seed's cameras,
-    averaged, and whether any of them shows it."""
+def seen_texels(positions: torch.Tensor, normals: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor,
+                height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every object pixel of a grid of the seed's cameras (SEED_VIEWS^2 views at VIEW_SIZE): the
+    `reference_columns` of the point it shows (P,) float64 and the texel (flat index into H x W) it
+    shows it with (P,)."""
     from ..render import MeshBatch
     from ..render.cameras import cameras_from_eyes
     from ..render.unrender import surface_at_pixels, surface_points
@@ -90,10 +91,16 @@ def _seen(positions: torch.Tensor, normals: torch.Tensor, faces: torch.Tensor, u
     batch = MeshBatch.from_tensors(positions[None], normals[None], uvs[None], faces, torch.zeros(1, 3, 1, 1))
     fragments, uv, _ = surface_at_pixels(batch, cameras, *VIEW_SIZE)
     points, _ = surface_points(batch, fragments, cameras)
-    column = reference_columns(points.double(), positions.double())
     row = ((1.0 - (uv[:, 1] % 1.0)) * height).long().clamp(0, height - 1)
     col = ((uv[:, 0] % 1.0) * width).long().clamp(0, width - 1)
-    index = row * width + col
+    return reference_columns(points.double(), positions.double()), row * width + col
+
+
+def _seen(positions: torch.Tensor, normals: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor,
+          height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mean column (H, W) of the points each texel shows in `seen_texels`, and whether any
+    view shows it."""
+    column, index = seen_texels(positions, normals, faces, uvs, height, width)
     total = torch.zeros(height * width, dtype=torch.float64).index_add_(0, index, column)
     count = torch.zeros(height * width, dtype=torch.float64).index_add_(0, index, torch.ones_like(column))
     return (total / count.clamp_min(1.0)).float().reshape(height, width), (count > 0).reshape(height, width)
