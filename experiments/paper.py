@@ -3,6 +3,7 @@ evaluated by this code, with the paper's figure beside ours in each cell.
 
     python experiments/paper.py --out runs/paper [--budget 300] [--runs 3] [--tables 1 2 3 4 5 6 7 8 9]
                                 [--config configs/seed_protocol8.yaml] [--eval-meshes 64] [--report]
+                                [--seeds 1 2] [--shard K/N]
 
 Every cell trains `--runs` models (seeds 0, 1, ...) of the base config with the cell's settings for
 `--budget` steps each (the config's step-based schedule scaled to the budget), and evaluates each on the
@@ -11,8 +12,10 @@ or real textures, the paper's camera and light ranges, our renderer, one view pe
 sigma over runs, as the paper reports. Runs resume and finished ones are skipped (OUT/results.jsonl);
 identical settings are trained once and shared between tables. Writes OUT/paper.md and OUT/bits.png
 (bit accuracy against message length with 1/2/3 sigma bands, the paper's Fig. 5). `--report` only
-rewrites them from the runs already done. Table 9 (other renderers) is read from docs/engines_test.jsonl
-(`experiments/engines.py`): the shipped informed model, since no blind decoder reads above chance yet.
+rewrites them from the runs already done. Table 6 also has the shipped blind surface code (nothing
+learned: each run draws its code from the seed, read from the paper's 600 x 400 pictures). Table 9 (other
+renderers) is read from docs/engines_blind8.jsonl and docs/engines_test.jsonl (`experiments/engines.py`):
+the blind `blind8` and the informed default.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from meshseal.train import TrainConfig, Trainer
 
 SCALED = ("warmup_steps", "distortion_start", "reference_steps", "pretrain_steps", "lr_decay_from")
 ENGINES_JSONL = Path(__file__).resolve().parent.parent / "docs" / "engines_test.jsonl"
+BLIND_ENGINES_JSONL = ENGINES_JSONL.with_name("engines_blind8.jsonl")
 PAPER_KINDS = ["noise", "real"]
 BITS = (4, 8, 16, 32, 48)
 
@@ -58,9 +62,17 @@ class Table:
     title: str
     columns: list  # (heading, metric) pairs; metrics: best / mean / sigma of bit accuracy, or an evaluate() key
     rows: list = field(default_factory=list)
+    note: str = ""  # a line under the table
 
 
 VT = {"model.strategy": "vertex+texture"}
+# The shipped blind surface code (configs/blind.yaml; models/surface.py): nothing learned, so a "run" is
+# the code drawn from its seed and the evaluation; 32 cells up to 16 bits, 64 above (as shipped).
+SURFACE_ROW = "Surface code (ours, blind, no training)"
+SURFACE = {"model.strategy": "texture", "model.texture_encoder": "surface", "model.decoder": "surface",
+           "model.mark_colour": "blue-yellow", "model.texture_psnr": 28.0, "model.activity_window": 5,
+           "model.activity_floor": 3.0}
+PAPER_PICTURE = (400, 600)  # the seed paper's picture (height, width), where the surface code is read
 FIXED_WEIGHTS = {"train.target_psnr": None, "train.target_psnr_texture": None}
 QUALITY = [("Best", "best"), ("μ", "mean"), ("σ", "sigma")]
 GEOMETRY = [("Normal L1", "l1_normal"), ("Texcoord L1", "l1_uv"), ("PSNR", "psnr_render"), ("SSIM", "ssim_render")]
@@ -117,7 +129,9 @@ TABLES = [
         Row("Texture only", {"model.strategy": "texture"},
             {f"mean@{b}": v for b, v in zip(BITS, (0.9554, 0.8970, 0.7975, 0.6364, 0.5679))}),
         Row("Vertex + Texture", VT, {f"mean@{b}": v for b, v in zip(BITS, (0.9208, 0.8480, 0.8000, 0.6441, 0.5905))}),
-    ]),
+        Row(SURFACE_ROW, SURFACE, {}),
+    ], note=f"The paper has no row like \"{SURFACE_ROW}\" (its – cells): compare it with the paper's Texture only "
+            "row. It is read from 600 x 400 pictures (the paper's size); the learned rows from the base config's render size."),
     Table(7, "Distortions at evaluation (8 bits, texture; the model trained with all of them)", [("Bit accuracy", "mean")], [
         Row("No distortion", {}, {"mean": 0.9046}),
         Row("Noise (σ = 0.01)", {}, {"mean": 0.9036}, distortion="noise"),
@@ -157,6 +171,9 @@ def configure(base: TrainConfig, settings: dict, bits: int | None, budget: int, 
     if bits is not None:
         config.model.n_bits = bits
     config.train.steps, config.train.val_every, config.train.time_limit_minutes = budget, budget, None
+    if config.model.decoder == "surface":  # nothing to train: the code is drawn from the seed
+        config.model.chips, config.model.pattern_seed = (32 if config.model.n_bits <= 16 else 64), seed
+        config.train.steps = config.train.val_every = 0
     config.train.val_meshes = 8  # a sanity check at the end; the evaluation below is the figure
     config.train.texture_kinds = PAPER_KINDS
     config.train.init_from = str(start_from) if start_from else None
@@ -209,39 +226,53 @@ def train_and_evaluate(config: TrainConfig, folder: Path, eval_meshes: int, dist
     model = load_model(folder / "model.safetensors")
     test = MeshDataset(config.data, "test", seed=0, texture_kinds=PAPER_KINDS)
     metrics = {}
+    size = PAPER_PICTURE if config.model.decoder == "surface" else config.train.render_size
     for name, distortion in distortions.items():
-        found = evaluate(model, test, n_meshes=eval_meshes, views=1, seed=0, render_size=config.train.render_size,
+        found = evaluate(model, test, n_meshes=eval_meshes, views=1, seed=0, render_size=size,
                          sampler="seed", distortions_3d=distortion)
         metrics[name] = {k: round(v, 5) if isinstance(v, float) else v for k, v in found.items()}
     return {"seconds": round(time.time() - started, 1), "metrics": metrics}
 
 
-def run_all(args, base: TrainConfig, done: dict) -> None:
-    """Seed by seed (a partial run fills every table with one run before the next seed starts)."""
-    for seed in range(args.runs):
+def plan(args, base: TrainConfig) -> list:
+    """Every run to make, in order (seed by seed, so that a partial run fills every table with one run
+    before the next seed starts): (seed, table, row, bits, shard group). Runs shared between tables,
+    and a run with the one it starts from, fall in one group; `--shard K/N` takes every N-th group."""
+    runs, groups = [], {}
+    for seed in args.seeds or range(args.runs):
         for table in TABLES:
             if table.number not in args.tables or table.number == 9:
                 continue
-            distortions = {"none": None}
-            if table.number == 7:
-                distortions |= {row.distortion: one_distortion(row.distortion) for row in table.rows if row.distortion}
             for row in table.rows:
                 if row.distortion:
                     continue  # read from the undistorted row's models
+                source = next(r for r in table.rows if r.label == row.start_from) if row.start_from else row
                 for bits in row_bits(table):
-                    key, config = planned(args.out, base, table, row, bits, args.budget, seed)
-                    if key in done and set(distortions) <= set(done[key]["metrics"]):
-                        continue
-                    print(f"table {table.number} {row.label} bits {config.model.n_bits} seed {seed} "
-                          f"({args.budget} steps) ...", flush=True)
-                    result = train_and_evaluate(config, args.out / "runs" / key, args.eval_meshes, distortions)
-                    done[key] = {"key": key, "table": table.number, "row": row.label, "bits": config.model.n_bits,
-                                 "seed": seed, "budget": args.budget} | result
-                    with open(args.out / "results.jsonl", "a") as stream:
-                        stream.write(json.dumps(done[key]) + "\n")
-                    print(f"   bit accuracy {result['metrics']['none']['bit_acc']:.4f} "
-                          f"({result['seconds']:.0f} s)", flush=True)
-                    (args.out / "paper.md").write_text(report(args, base, done))
+                    group = planned(args.out, base, table, source, bits, args.budget, seed)[0]
+                    runs.append((seed, table, row, bits, groups.setdefault(group, len(groups))))
+    return runs
+
+
+def run_all(args, base: TrainConfig, done: dict) -> None:
+    shard, shards = args.shard
+    for seed, table, row, bits, group in plan(args, base):
+        if group % shards != shard:
+            continue
+        distortions = {"none": None}
+        if table.number == 7:
+            distortions |= {r.distortion: one_distortion(r.distortion) for r in table.rows if r.distortion}
+        key, config = planned(args.out, base, table, row, bits, args.budget, seed)
+        if key in done and set(distortions) <= set(done[key]["metrics"]):
+            continue
+        print(f"table {table.number} {row.label} bits {config.model.n_bits} seed {seed} ({args.budget} steps) ...",
+              flush=True)
+        result = train_and_evaluate(config, args.out / "runs" / key, args.eval_meshes, distortions)
+        done[key] = {"key": key, "table": table.number, "row": row.label, "bits": config.model.n_bits,
+                     "seed": seed, "budget": args.budget} | result
+        with open(args.out / "results.jsonl", "a") as stream:
+            stream.write(json.dumps(done[key]) + "\n")
+        print(f"   bit accuracy {result['metrics']['none']['bit_acc']:.4f} ({result['seconds']:.0f} s)", flush=True)
+        (args.out / "paper.md").write_text(report(args, base, done))
 
 
 def summarise(values: list[dict], metric: str) -> float | None:
@@ -284,6 +315,13 @@ def report(args, base: TrainConfig, done: dict) -> str:
     lines.append(f"Runs finished: {len(done)}, {minutes:.0f} minutes of training and evaluation in all; every cell has "
                  f"{len(complete)} of the {args.runs} planned run(s) (seeds {', '.join(map(str, seeds)) or 'none'} "
                  f"started). Best, μ and σ are over the runs a cell has.\n")
+    elsewhere = {}
+    for r in done.values():
+        if r.get("where"):
+            elsewhere.setdefault(r["where"], []).append(r)
+    for where, rows in elsewhere.items():
+        lines.append(f"{len(rows)} of the runs (seed(s) {', '.join(map(str, sorted({r['seed'] for r in rows})))}) ran on "
+                     f"{where}, with `--seeds` and `--shard K/N`; the rest on this repository's 2-core machine.\n")
     for table in TABLES:
         if table.number not in args.tables:
             continue
@@ -312,6 +350,15 @@ def report(args, base: TrainConfig, done: dict) -> str:
                 cells.append(cell(row.paper.get(metric), ours))
             lines.append(f"| {row.label} | " + " | ".join(cells) + " |")
         lines.append("")
+        if table.note:
+            lines += [table.note, ""]
+        if table.number == 6:
+            surface = [r["metrics"]["none"] for r in done.values() if r["row"] == SURFACE_ROW]
+            if surface:
+                psnr, flip = [round(float(np.mean([m[k] for m in surface])), n) for k, n in (("psnr_object", 2),
+                                                                                            ("flip_object", 4))]
+                lines += [f"The surface code's mark, over the object's pixels ({len(surface)} runs): PSNR {psnr} dB, "
+                          f"FLIP {flip}.", ""]
     if 9 in args.tables:
         lines += table9()
     if 6 in args.tables:
@@ -320,20 +367,28 @@ def report(args, base: TrainConfig, done: dict) -> str:
 
 
 def table9() -> list[str]:
+    """The paper's Table 9 beside our blind model (its setting: a picture alone) and our informed default."""
     lines = ["## Table 9: other renderers\n",
-             "The paper's blind decoder against our shipped *informed* default (it reads the picture with the "
-             "original mesh; no blind decoder of ours reads above chance yet), on 60 test meshes x 2 views, pictures "
-             "without metadata (`python experiments/engines.py --data data --meshes 60 --views 2 --engines ours "
-             "cycles eevee workbench --jsonl docs/engines_test.jsonl`; docs/engines.md).\n",
-             "| | renderer | the paper | ours (camera registered) | ours (camera known) |", "|---|---|---|---|---|"]
-    rows = [json.loads(line) for line in ENGINES_JSONL.read_text().splitlines()] if ENGINES_JSONL.exists() else []
+             "The paper's blind decoder, trained through its own renderer, reading other renderers' pictures, beside "
+             "ours: the blind `blind8` (8 bits, a picture alone, 30 test meshes with spherical UVs x 1 seed view, "
+             "600 x 400: `python experiments/engines.py --model blind8 --data data --meshes 30 --views 1 --jsonl "
+             "docs/engines_blind8.jsonl`) and the informed default (the original mesh at hand, 60 test meshes with "
+             "their own UVs x 2 views, 256^2, pictures without metadata: `python experiments/engines.py --data data "
+             "--meshes 60 --views 2 --engines ours cycles eevee workbench --jsonl docs/engines_test.jsonl`); "
+             "docs/engines.md. Neither was trained or tuned on any of these renderers.\n",
+             "| | renderer | the paper | ours, blind | ours, informed (camera registered) | ours, informed (camera known) |",
+             "|---|---|---|---|---|---|"]
+    read = lambda path: [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []  # noqa: E731
+    blind, informed = read(BLIND_ENGINES_JSONL), read(ENGINES_JSONL)
+    mean = lambda rows, key: f"{np.mean([r[key] for r in rows]):.4f}" if rows else "–"  # noqa: E731
     for letter, engine in zip("abcd", ("ours", "workbench", "cycles", "eevee")):
         label, paper = TABLE9_PAPER[engine]
-        picked = [r for r in rows if r["engine"] == engine]
-        registered = f"{np.mean([r['bit_acc'] for r in picked]):.4f}" if picked else "–"
-        known = f"{np.mean([r['bit_acc_known'] for r in picked]):.4f}" if picked else "–"
-        lines.append(f"| {letter} | {label} | {paper:.4f} | **{registered}** | **{known}** |")
-    lines += ["| e | Fine-tuned (Eevee) | 0.7679 | – (the default's matched filter has nothing to fine-tune) | – |", ""]
+        picked_blind = [r for r in blind if r["engine"] == engine]
+        picked = [r for r in informed if r["engine"] == engine]
+        lines.append(f"| {letter} | {label} | {paper:.4f} | **{mean(picked_blind, 'bit_acc')}** | "
+                     f"**{mean(picked, 'bit_acc')}** | **{mean(picked, 'bit_acc_known')}** |")
+    lines += ["| e | Fine-tuned (Eevee) | 0.7679 | – (nothing learned to fine-tune) | – (a matched filter: nothing to "
+              "fine-tune; `learned32` fine-tuned on Eevee lost accuracy, docs/engines.md) | – |", ""]
     return lines
 
 
@@ -344,35 +399,41 @@ def bits_figure(args, base: TrainConfig, done: dict) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    table = TABLES[5]
-    row = next(r for r in table.rows if r.label == "Texture only")
-    means, sigmas, bits_done, counts = [], [], [], []
-    for bits in BITS:
-        keys = (planned(args.out, base, table, row, bits, args.budget, seed)[0] for seed in range(args.runs))
-        accuracies = [done[k]["metrics"]["none"]["bit_acc"] for k in keys if k in done]
-        if accuracies:
-            bits_done.append(bits)
-            counts.append(len(accuracies))
-            means.append(np.mean(accuracies))
-            sigmas.append(np.std(accuracies))
-    if not bits_done:
+    table = next(t for t in TABLES if t.number == 6)
+    curves, counts = [], []
+    for label, colour in (("Texture only", "tab:blue"), (SURFACE_ROW, "tab:green")):
+        row = next(r for r in table.rows if r.label == label)
+        means, sigmas, bits_done = [], [], []
+        for bits in BITS:
+            keys = (planned(args.out, base, table, row, bits, args.budget, seed)[0] for seed in range(args.runs))
+            accuracies = [done[k]["metrics"]["none"]["bit_acc"] for k in keys if k in done]
+            if accuracies:
+                bits_done.append(bits)
+                counts.append(len(accuracies))
+                means.append(np.mean(accuracies))
+                sigmas.append(np.std(accuracies))
+        if bits_done:
+            curves.append((label, colour, bits_done, np.array(means), np.array(sigmas)))
+    if not curves:
         return "(Fig. 5: no texture-only runs yet.)"
     figure, axes = plt.subplots(figsize=(5, 3.2))
-    means, sigmas = np.array(means), np.array(sigmas)
-    for k, alpha in ((3, 0.12), (2, 0.2), (1, 0.3)):
-        axes.fill_between(bits_done, means - k * sigmas, means + k * sigmas, color="tab:blue", alpha=alpha, lw=0,
-                          label=f"{k} σ")
-    axes.plot(bits_done, means, "o-", color="tab:blue", label="ours (mean)")
+    for label, colour, bits_done, means, sigmas in curves:
+        for k, alpha in ((3, 0.12), (2, 0.2), (1, 0.3)):
+            axes.fill_between(bits_done, means - k * sigmas, means + k * sigmas, color=colour, alpha=alpha, lw=0,
+                              label=f"{k} σ" if colour == "tab:blue" else None)
+        name = "ours, learned texture only (mean)" if label == "Texture only" else "ours, blind surface code (mean)"
+        axes.plot(bits_done, means, "o-", color=colour, label=name)
     axes.plot(BITS, [0.9554, 0.8970, 0.7975, 0.6364, 0.5679], "s--", color="tab:orange", label="the paper (mean)")
     axes.set_xlabel("message length (bits)")
     axes.set_ylabel("bit accuracy")
     axes.set_xticks(list(BITS))
-    axes.legend(fontsize=7)
+    axes.legend(fontsize=7, loc="lower left")
     figure.tight_layout()
     figure.savefig(args.out / "bits.png", dpi=120)
     plt.close(figure)
     runs = f"{min(counts)}" if min(counts) == max(counts) else f"{min(counts)}-{max(counts)}"
-    return f"![bit accuracy against message length](bits.png) (texture only, {runs} of {args.runs} run(s) per length)"
+    return (f"![bit accuracy against message length](bits.png) (Table 6's learned texture-only row and the blind "
+            f"surface code, {runs} of {args.runs} run(s) per length)")
 
 
 def main() -> None:
@@ -384,6 +445,9 @@ def main() -> None:
     parser.add_argument("--eval-meshes", type=int, default=64)
     parser.add_argument("--tables", type=int, nargs="+", default=list(range(1, 10)))
     parser.add_argument("--report", action="store_true", help="only rewrite paper.md from the runs done")
+    parser.add_argument("--seeds", type=int, nargs="+", help="train only these seeds (default: 0 .. runs-1)")
+    parser.add_argument("--shard", type=lambda t: tuple(map(int, t.split("/"))), default=(0, 1), metavar="K/N",
+                        help="train every N-th run of the plan, from the K-th (parallel processes on one OUT)")
     args = parser.parse_args()
     base = TrainConfig.load(args.config)
     args.out.mkdir(parents=True, exist_ok=True)
