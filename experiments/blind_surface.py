@@ -12,8 +12,9 @@ from the points the seed's views show; --isotropic S: the picture's chroma high-
 Gaussian of S pixels (as the lattice mark's whitening) instead of along rows; --pool P: a cell's evidence
 is its sum over count^P; --codes sequency: the Walsh functions with the fewest sign changes, unscrambled;
 --host-free: read the difference between the marked and the original picture (what the host texture
-costs); --sphere: a UV sphere with noise textures; --own: the test items with their own UV atlases. Each run
-also splits the accuracy by how much the texels a picture shows are shared between places of the object.
+costs); --sphere: a UV sphere with noise textures; --own: the test items with their own UV atlases; --split
+train: the training meshes (to tune without the test split). Each run also splits the accuracy by how much
+the texels a picture shows are shared between places of the object, and by the object's width in pixels.
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ def main() -> None:
     parser.add_argument("--sphere", action="store_true")
     parser.add_argument("--own", action="store_true", help="the test items with their own UV atlases instead")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--split", default="test", help="the dataset split (train: to tune without the test meshes)")
     args = parser.parse_args()
 
     surface.POOL = args.pool
@@ -83,7 +85,7 @@ def main() -> None:
         from meshseal.data.dataset import MeshDataset
 
         kinds = ("own",) if args.own else ("noise", "real")
-        dataset = MeshDataset(args.data, "test", seed=args.seed, texture_kinds=kinds)
+        dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
         items = (dataset[i] for i in range(min(args.meshes, len(dataset))))
     rows = []
     for item in items:
@@ -108,6 +110,7 @@ def main() -> None:
         row = {"mesh": item["id"], "bit_acc": float(((soft > 0) == truth).float().mean()),
                "shared": shared_texels(positions, normals, item["faces"][:n_faces], uvs, *texture.shape[-2:]),
                "clean_bit_acc": float(((clean > 0) == truth).float().mean()),
+               "width_px": int(np.ptp(np.nonzero(mask)[1]) + 1) if mask.any() else 0,
                "texture_psnr_painted": float(-10 * torch.log10((marked - texture).pow(2).mean(1)[0][painted].mean())),
                "seconds": time.perf_counter() - started, **seen}
         rows.append(row)
@@ -119,6 +122,10 @@ def main() -> None:
         if part:
             print(f"texels shared {low:.2f}-{high:.2f} of the object's width: {len(part)} meshes, bit accuracy "
                   f"{mean('bit_acc', part):.3f}")
+    for low, high in ((0, 64), (64, 128), (128, 200), (200, 10_000)):  # by the object's width in the picture
+        part = [r for r in rows if low <= r["width_px"] < high]
+        if part:
+            print(f"object {low}-{high} px wide: {len(part)} pictures, bit accuracy {mean('bit_acc', part):.3f}")
     print(json.dumps({"bits": args.bits, "cells": args.cells, "meshes": len(rows), "bit_acc": round(mean("bit_acc"), 4),
                       "clean_bit_acc": round(mean("clean_bit_acc"), 4), "psnr_object": round(mean("psnr_object"), 2),
                       "flip_object": round(mean("flip_object"), 4),
