@@ -416,7 +416,7 @@ def bits_figure(args, base: TrainConfig, done: dict) -> str:
             curves.append((label, colour, bits_done, np.array(means), np.array(sigmas)))
     if not curves:
         return "(Fig. 5: no texture-only runs yet.)"
-    figure, axes = plt.subplots(figsize=(5, 3.2))
+    figure, axes = plt.subplots(figsize=(7, 3.2))
     for label, colour, bits_done, means, sigmas in curves:
         for k, alpha in ((3, 0.12), (2, 0.2), (1, 0.3)):
             axes.fill_between(bits_done, means - k * sigmas, means + k * sigmas, color=colour, alpha=alpha, lw=0,
@@ -427,7 +427,7 @@ def bits_figure(args, base: TrainConfig, done: dict) -> str:
     axes.set_xlabel("message length (bits)")
     axes.set_ylabel("bit accuracy")
     axes.set_xticks(list(BITS))
-    axes.legend(fontsize=7, loc="lower left")
+    axes.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     figure.tight_layout()
     figure.savefig(args.out / "bits.png", dpi=120)
     plt.close(figure)
