@@ -297,32 +297,35 @@ def take_off_linear_light(residual: torch.Tensor, expected: torch.Tensor, pixel:
     return residual, weight.sqrt()[:, None] * unit
 
 
+def unpadded(batch: dict, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Item `index` of a dataset batch without its padding: positions, normals, uvs (V, .), faces (F, 3)."""
+    n_verts, n_faces = int(batch["n_verts"][index]), int(batch["n_faces"][index])
+    return (batch["positions"][index, :n_verts], batch["normals"][index, :n_verts], batch["uvs"][index, :n_verts],
+            batch["faces"][index, :n_faces])
+
+
 def batch_mark_grid(model: WatermarkModel, batch: dict, index: int = 0) -> int | None:
     """The cell grid a spread mark uses on item `index` of a dataset batch (its padding left out), as
     `Watermarker.embed` picks it for that mesh."""
-    n_verts, n_faces = int(batch["n_verts"][index]), int(batch["n_faces"][index])
-    return model.mark_grid(batch["positions"][index, :n_verts], batch["faces"][index, :n_faces],
-                           batch["uvs"][index, :n_verts])
+    positions, _, uvs, faces = unpadded(batch, index)
+    return model.mark_grid(positions, faces, uvs)
 
 
 def batch_texels_used(batch: dict) -> torch.Tensor:
     """The texels (B, 1, H, W) each mesh of a dataset batch shows (its padding left out), where a
     spread mark lies, as `Watermarker.embed` finds them (`models.spread.texels_used`)."""
     height, width = batch["texture"].shape[-2:]
-    return torch.stack([texels_used(batch["uvs"][index, :int(batch["n_verts"][index])],
-                                    batch["faces"][index, :int(batch["n_faces"][index])], height, width)
-                        for index in range(len(batch["texture"]))])[:, None].to(batch["texture"].device)
+    items = (unpadded(batch, index) for index in range(len(batch["texture"])))
+    return torch.stack([texels_used(uvs, faces, height, width)
+                        for _, _, uvs, faces in items])[:, None].to(batch["texture"].device)
 
 
 def batch_texel_columns(batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
     """Each texel's column and whether it paints any (B, H, W) each, for every mesh of a dataset batch
     (its padding left out), where a surface mark lies (`models.surface.texel_columns`)."""
     height, width = batch["texture"].shape[-2:]
-    pairs = [texel_columns(batch["positions"][index, :int(batch["n_verts"][index])],
-                           batch["normals"][index, :int(batch["n_verts"][index])],
-                           batch["faces"][index, :int(batch["n_faces"][index])],
-                           batch["uvs"][index, :int(batch["n_verts"][index])], height, width)
-             for index in range(len(batch["texture"]))]
+    pairs = [texel_columns(positions, normals, faces, uvs, height, width)
+             for positions, normals, uvs, faces in (unpadded(batch, i) for i in range(len(batch["texture"])))]
     device = batch["texture"].device
     return torch.stack([c for c, _ in pairs]).to(device), torch.stack([p for _, p in pairs]).to(device)
 
