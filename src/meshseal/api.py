@@ -230,9 +230,11 @@ class Watermarker:
         no error correction) in its textures (and normals/uvs with a vertex encoder). `key` (None: the
         public key) keys both the payload and the mark's pattern.
 
-        Positions and faces never change. Learned encoders mark textures of any size at the model's
-        working resolution and upsample the residual; spread-spectrum models mark at full resolution,
-        `strength` times their default amplitude (2: 6 dB louder and more robust; 0.5: quieter).
+        Positions never change; spread-spectrum models first give faces without UV area (a palette
+        texture) charts of their own (`layout`: added vertices and a taller texture, rendered as
+        before). Learned encoders mark textures of any size at the model's working resolution and
+        upsample the residual; spread-spectrum models mark at full resolution, `strength` times their
+        default amplitude (2: 6 dB louder and more robust; 0.5: quieter).
         """
         from . import payload
 
@@ -251,6 +253,15 @@ class Watermarker:
         if self.surface and textured and marked.uvs is not None:
             self._mark_surface(mesh, marked, message, strength)
         elif encoder.texture_encoder is not None and textured and marked.uvs is not None:
+            charted = self.layout(marked)
+            if charted is not marked:
+                sizes = [f"{a.texture.shape[1]}x{a.texture.shape[0]} -> {b.texture.shape[1]}x{b.texture.shape[0]}"
+                         for a, b in zip(marked.materials, charted.materials) if a.texture is not None
+                         and a.texture.shape != b.texture.shape]
+                print(f"meshseal: note: faces without UV area (the texture used as a colour palette) got charts of "
+                      f"their own so that they carry the mark too: {charted.n_vertices - marked.n_vertices} vertices "
+                      f"added, texture {', '.join(sizes)}", file=sys.stderr)
+                marked = charted
             grid = self.mark_grid(marked)
             palette = palette_share(marked.positions, _textured_faces(marked), marked.uvs)
             if palette >= PALETTE_WARNING:
@@ -327,7 +338,16 @@ class Watermarker:
         is minified, see `models.spread`); None for learned marks or a mesh without a texture and UVs."""
         if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
             return None
+        mesh = self.layout(mesh)
         return self.model.mark_grid(mesh.positions, _textured_faces(mesh), mesh.uvs)
+
+    def layout(self, mesh: Mesh) -> Mesh:
+        """`mesh` as this model marks it, and as detection takes the original: spread-spectrum marks
+        first give faces without UV area charts of their own (`mesh.charts`: a palette texture), so that
+        they carry the mark too; other models take the mesh as it is."""
+        from .mesh.charts import chart_palette_faces
+
+        return chart_palette_faces(mesh) if self.calibrated else mesh
 
     # ------------------------------------------------------------ detect
     @torch.no_grad()
@@ -465,7 +485,7 @@ class Watermarker:
             mesh = load_mesh(mesh)
         if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
             raise MeshsealError("the original mesh has no texture with UVs, so it cannot carry this model's mark")
-        return MeshBatch.from_mesh(normalize(to_z_up(replace(mesh, source=None))).to(self.device))
+        return MeshBatch.from_mesh(normalize(to_z_up(replace(self.layout(mesh), source=None))).to(self.device))
 
     def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None) -> _Reading:
         """One picture's evidence, before any decision (`decide`); `original` from `original()`, None

@@ -18,7 +18,7 @@ from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
 from .metrics import shown_texture_psnr, visibility
 from .models import WatermarkModel
-from .pipeline import batch_mark_grid, batch_texels_used, run_pass
+from .pipeline import batch_mark_grid, batch_texels_used, charted_item, run_pass, unpadded
 from .render import MeshRenderer
 
 
@@ -111,6 +111,10 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     device = model.device
     for index in range(count):
         batch = collate([dataset[index]], device)
+        positions, _, uvs, faces = unpadded(batch, 0)  # the mesh's own UV use, before any charts
+        palette = palette_share(positions, faces, uvs) >= PALETTE_WARNING
+        if watermarker.calibrated:  # palette faces charted, as `meshseal embed` marks the mesh
+            batch = charted_item(batch)
         if coded:
             identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
             message = payload.encode(identity, None, model.n_bits)[None].to(device)
@@ -130,8 +134,6 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                 cameras, lights, size, size, background).image.clamp(0, 1)
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
         original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
-        n_verts, n_faces = int(batch["n_verts"][0]), int(batch["n_faces"][0])
-        palette = palette_share(positions[0, :n_verts], faces[0, :n_faces], uvs[0, :n_verts]) >= PALETTE_WARNING
         readings = []
         for view in range(views):
             picture = pictures[view].permute(1, 2, 0).cpu().numpy()

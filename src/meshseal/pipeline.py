@@ -304,6 +304,24 @@ def unpadded(batch: dict, index: int) -> tuple[torch.Tensor, torch.Tensor, torch
             batch["faces"][index, :n_faces])
 
 
+def charted_item(batch: dict, index: int = 0) -> dict:
+    """Item `index` of a dataset batch as a one-item batch (no padding) with its palette faces
+    charted as `Watermarker.layout` charts a mesh for a spread mark (`mesh.charts`); the item as it
+    is (unpadded) where nothing is charted."""
+    from .mesh import Material, Mesh
+    from .mesh.charts import chart_palette_faces
+
+    positions, normals, uvs, faces = unpadded(batch, index)
+    texture = batch["texture"][index]
+    mesh = Mesh(positions.cpu(), normals.cpu(), faces.cpu(), uvs.cpu(), materials=[Material(texture=texture.permute(1, 2, 0).cpu())])
+    charted = chart_palette_faces(mesh)
+    device = texture.device
+    return {"positions": charted.positions[None].to(device), "normals": charted.normals[None].to(device),
+            "uvs": charted.uvs[None].to(device), "faces": charted.faces[None].to(device),
+            "texture": charted.materials[0].texture.permute(2, 0, 1)[None].contiguous().to(device),
+            "n_verts": torch.tensor([charted.n_vertices], device=device), "n_faces": torch.tensor([charted.n_faces], device=device)}
+
+
 def batch_mark_grid(model: WatermarkModel, batch: dict, index: int = 0) -> int | None:
     """The cell grid a spread mark uses on item `index` of a dataset batch (its padding left out), as
     `Watermarker.embed` picks it for that mesh."""

@@ -251,11 +251,12 @@ def run_embed(args) -> int:
     else:
         marked = watermarker.embed(mesh, args.message if args.id is None else args.id, key=key, strength=args.strength)
     written = save(marked, args.output)
-    report, renders = embed_report(mesh, marked, args.views)
+    base = watermarker.layout(mesh)  # the texture the mark was added to (palette faces charted)
+    report, renders = embed_report(base, marked, args.views)
     report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": args.strength,
                "cells": watermarker.mark_grid(mesh), "keyed": key is not None, "output": str(args.output)}
     if args.preview is not None:
-        write_preview(args.preview, mesh, marked, renders)
+        write_preview(args.preview, base, marked, renders)
         report["preview"] = str(args.preview)
     if args.json:
         print(json.dumps(report))

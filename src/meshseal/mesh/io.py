@@ -273,8 +273,13 @@ def _from_scene(scene, path: Path, file_type: str, input_files: set[Path], up_ax
 def _tensor_to_image(texture: torch.Tensor, like) -> Image.Image:
     array = (texture.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
     image = Image.fromarray(array, "RGB")
-    if isinstance(like, Image.Image) and like.mode in ("RGBA", "LA") and like.size == image.size:
-        image.putalpha(like.getchannel("A"))
+    if isinstance(like, Image.Image) and like.mode in ("RGBA", "LA"):
+        alpha = like.getchannel("A")
+        if like.size != image.size:  # charted (`mesh.charts`): the old texels top left, the charts opaque
+            grown = Image.new("L", image.size, 255)
+            grown.paste(alpha, (0, 0))
+            alpha = grown
+        image.putalpha(alpha)
     return image
 
 
@@ -282,7 +287,9 @@ def _write_back(mesh: Mesh) -> object:
     """A copy of the source scene with the mesh's attributes written into its geometries."""
     source: Source = mesh.source
     scene = copy.deepcopy(source.scene)
-    positions_changed = not torch.equal(mesh.positions.detach().cpu(), source.original_positions)
+    # Charts (`mesh.charts`) add vertices, copies of others: those parts are rebuilt, the rest keep theirs.
+    positions_changed = (mesh.positions.shape == source.original_positions.shape
+                         and not torch.equal(mesh.positions.detach().cpu(), source.original_positions))
     done: set[str] = set()
     for part in source.parts:
         if part.geometry in done:  # an instanced geometry is written from its first instance
@@ -290,7 +297,11 @@ def _write_back(mesh: Mesh) -> object:
         done.add(part.geometry)
         geometry = scene.geometry[part.geometry]
         inverse = np.linalg.inv(part.transform)
-        if positions_changed:
+        rebuilt = part.vertices.stop - part.vertices.start != len(geometry.vertices)
+        if rebuilt:
+            geometry = _rebuilt(geometry, mesh, part)
+            scene.geometry[part.geometry] = geometry
+        if positions_changed or rebuilt:
             world = mesh.positions[part.vertices].detach().cpu().double().numpy()
             geometry.vertices = world @ inverse[:3, :3].T + inverse[:3, 3]
         world_normals = mesh.normals[part.vertices].detach().cpu().double().numpy()
@@ -309,6 +320,17 @@ def _write_back(mesh: Mesh) -> object:
             elif hasattr(material, "image"):
                 material.image = _tensor_to_image(texture, material.image)
     return scene
+
+
+def _rebuilt(geometry, mesh: Mesh, part):
+    """A part's geometry with the mesh's vertices and faces for it (`mesh.charts` added vertices),
+    its material kept; positions, normals and UVs are written as for any part."""
+    import trimesh
+
+    faces = (mesh.faces[part.faces] - part.vertices.start).cpu().numpy()
+    vertices = np.zeros((part.vertices.stop - part.vertices.start, 3))
+    visual = trimesh.visual.TextureVisuals(uv=np.zeros((len(vertices), 2)), material=getattr(geometry.visual, "material", None))
+    return trimesh.Trimesh(vertices=vertices, faces=faces, visual=visual, process=False)
 
 
 def _normal_keeping_scene(scene):
