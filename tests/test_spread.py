@@ -118,7 +118,7 @@ def test_the_mark_lies_on_the_texels_shown_at_the_target_psnr_there():
     assert upsampled.shape[-1] == 128  # the mask follows the texture resampled to carry the grid
 
 
-def test_embed_warns_on_a_texture_used_as_a_palette(tmp_path, capsys):
+def test_embed_charts_a_texture_used_as_a_palette_and_warns_where_it_cannot(tmp_path, capsys):
     from meshseal.mesh import save
 
     mesh = load(FIXTURES / "bunny.glb")
@@ -126,7 +126,16 @@ def test_embed_warns_on_a_texture_used_as_a_palette(tmp_path, capsys):
     save(mesh, tmp_path / "palette.glb")
     assert main(["embed", str(tmp_path / "palette.glb"), "-o", str(tmp_path / "m.glb"), "--bits", "01" * 32,
                  "--views", "0"]) == 0
-    assert "100% of the textured surface has faces without UV area" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "got charts of their own" in err and "warning" not in err
+    tiled = mesh.uvs.clone()
+    tiled[mesh.faces[0]] = torch.tensor([[1.2, 0.2], [1.6, 0.2], [1.2, 0.6]])  # past the texture's edge: a tiled map
+    mesh.uvs = tiled
+    save(mesh, tmp_path / "tiled.glb")
+    assert main(["embed", str(tmp_path / "tiled.glb"), "-o", str(tmp_path / "t.glb"), "--bits", "01" * 32,
+                 "--views", "0"]) == 0
+    err = capsys.readouterr().err
+    assert "of the textured surface has faces without UV area" in err and "got charts" not in err
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", "01" * 32,
                  "--views", "0"]) == 0
     assert "palette" not in capsys.readouterr().err

@@ -160,14 +160,17 @@ def main() -> int:
                   f"metadata gives, the same {shipped['n_meshes']} meshes x {shipped['n_views']} seed views: bit accuracy "
                   f"**{shipped['bit_acc_known_camera']:.4f}**, detected at FPR {shipped['fpr_threshold']:g} "
                   f"{shipped['tpr_known_camera']:.3f}, exact message {shipped['exact_message_known_camera']:.3f}, "
+                  f"object PSNR {shipped['psnr_object']:.2f} dB, object FLIP {shipped['flip_object']:.4f}, "
                   f"{shipped['seconds_per_picture']:.2f} s per picture."]
         uv_mapped, palette = shipped["by_uv_map"]["uv_mapped"], shipped["by_uv_map"]["palette"]
         lines += ["", f"Split by how the mesh uses its texture: {uv_mapped['pictures']} pictures of meshes with a UV map "
                   f"read **{uv_mapped['bit_acc_known_camera']:.4f}** (detected {uv_mapped['tpr_known_camera']:.3f}); "
                   f"{palette['pictures']} of meshes that use the texture as a colour palette (half their surface or more "
-                  f"on faces without UV area, where `meshseal embed` warns) read {palette['bit_acc_known_camera']:.4f} "
-                  f"(detected {palette['tpr_known_camera']:.3f}): such a face shows one texel or a line of them, so the "
-                  "mark has next to no room there."]
+                  f"on faces without UV area) read **{palette['bit_acc_known_camera']:.4f}** (detected "
+                  f"{palette['tpr_known_camera']:.3f}; object PSNR {palette['psnr_object']:.2f} dB, FLIP "
+                  f"{palette['flip_object']:.4f}): such a face shows one texel wherever it is seen, so `meshseal embed` "
+                  "first gives those faces charts of their own (`mesh.charts`), filled with the colour they showed, "
+                  "and the mark lies there as on any UV-mapped surface."]
     if registered is not None:
         pose = registered["pose_error_px"]
         lines += ["", f"End to end as `meshseal detect` runs it on a picture without metadata, on the first "

@@ -266,7 +266,8 @@ class Watermarker:
             palette = palette_share(marked.positions, _textured_faces(marked), marked.uvs)
             if palette >= PALETTE_WARNING:
                 print(f"meshseal: warning: {palette:.0%} of the textured surface has faces without UV area (the "
-                      "texture used as a colour palette): the mark has little room there and may read poorly",
+                      "texture used as a colour palette) and could not be given charts (a tiled texture, or vertices "
+                      "shared with another material): the mark has little room there and may read poorly",
                       file=sys.stderr)
             for index, material in enumerate(marked.materials):
                 if material.texture is None:

@@ -132,8 +132,10 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             background = random_backgrounds(views, generator)
             pictures = renderer(MeshBatch.from_tensors(positions, normals_marked, uvs_marked, faces, texture_marked),
                                 cameras, lights, size, size, background).image.clamp(0, 1)
+            original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
+            clean = renderer(original, cameras, lights, size, size, background)  # what the mark changed, as seen
+            seen = visibility(clean.image, pictures, clean.rgba[..., 3] > 0.5)
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
-        original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
         readings = []
         for view in range(views):
             picture = pictures[view].permute(1, 2, 0).cpu().numpy()
@@ -159,7 +161,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "exact": found is not None and found.message == identity,
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
-            rows.append(row | {"palette": palette})
+            rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "flip_object": seen["flip_object"]})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
@@ -173,7 +175,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     success = (pose < 0.5) | (torch.tensor([r["iou"] for r in rows]) >= 0.95)
     accuracy = torch.tensor([r["bit_acc"] for r in rows])
     result = {"bit_acc": float(accuracy.mean()), "bit_acc_std": float(accuracy.std()) if len(rows) > 1 else 0.0,
-              "bit_acc_known_camera": mean("bit_acc_known"),
+              "bit_acc_known_camera": mean("bit_acc_known"), "psnr_object": mean("psnr_object"),
+              "flip_object": mean("flip_object"),
               "registration_success": float(success.float().mean()), "registration_iou": mean("iou"),
               # Quantiles count a refused picture as infinitely off; max is over the pictures read; a
               # figure that is not finite is null (JSON has no infinity).
@@ -188,12 +191,15 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         result |= {"tpr_pooled": mean("detected", pooled), "exact_message_pooled": mean("exact", pooled)}
     if coded:  # meshes with a UV map, and those that use the texture as a palette (`api.PALETTE_WARNING`)
         result["by_uv_map"] = {name: {"pictures": len(part), "bit_acc_known_camera": mean("bit_acc_known", part) if part else None,
-                                      "tpr_known_camera": mean("detected_known", part) if part else None}
+                                      "tpr_known_camera": mean("detected_known", part) if part else None,
+                                      "psnr_object": mean("psnr_object", part) if part else None,
+                                      "flip_object": mean("flip_object", part) if part else None}
                                for name, part in (("uv_mapped", [r for r in rows if not r["palette"]]),
                                                   ("palette", [r for r in rows if r["palette"]]))}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
+            "psnr_object", "flip_object",
             "seconds_per_picture", "n_meshes", "n_views", "size")}
     return result
 

@@ -4,8 +4,9 @@ A face whose three UVs meet at one point (a texture used as a colour palette, or
 material packed as a swatch) shows one colour wherever it is seen, and a mark in the texture cannot
 spread over it: every pixel of the face shows the same texel. `chart_palette_faces` gives such faces
 charts of their own, unwrapped by xatlas (adjacent faces of one colour together, at the texel density
-of the mesh's UV-mapped faces), packed into rows added below the texture and filled with the colour
-each face showed. The rest of the texture keeps its texels, and the rows and columns it wraps onto
+of the mesh's UV-mapped faces): each colour's charts in a block that colour fills, the blocks packed
+into rows added below the texture with wide gutters, so that filtering and mip levels keep every
+face's colour. The rest of the texture keeps its texels, and the rows and columns it wraps onto
 are copied next to it, so the charted mesh renders as the original did; a mark then lies on the
 charts as on any UV-mapped surface. It is deterministic: detection charts the original the same way
 and reads the mark where embedding put it.
@@ -24,11 +25,10 @@ from .core import Mesh
 
 CHART_ABOVE = 0.1  # chart when this share of the textured surface is on palette faces
 POINT_TEXELS = 1.0  # a palette face's UVs lie within this many texels of each other
-PADDING = 2  # texels between charts: bilinear filtering and the first mip levels stay inside a chart
+GUTTER = 4  # texels between two colours' blocks, filled half by each: the first mip levels keep both
 MAX_SIDE = 4096  # the atlas's largest side; its density is lowered to fit
 STANDARD_PIXEL = 1 / 63.3  # a 256^2 view of the object scaled to radius 1, from 3.5 away, 60 degree field
 TEXELS_PER_PIXEL = 2.0  # at most this many chart texels per pixel of that view (more is never seen)
-RASTER_GROW = 0.75  # texels whose centre lies this close to a chart triangle take its colour
 
 
 def palette_faces(mesh: Mesh, material: int) -> torch.Tensor:
@@ -83,8 +83,6 @@ def chart_palette_faces(mesh: Mesh) -> Mesh:
 def _chart_material(mesh: Mesh, material: int, parts: list) -> tuple | None:
     """One material's charts: its new texture, the affine map of its old UVs into it, and per
     geometry the palette faces (local indices), the new vertices' sources (local) and UVs."""
-    import xatlas
-
     texture = mesh.materials[material].texture
     height, width = texture.shape[:2]
     palette = palette_faces(mesh, material)
@@ -110,18 +108,11 @@ def _chart_material(mesh: Mesh, material: int, parts: list) -> tuple | None:
         return None
     density = _density(mesh, mapped, height, width)
     while True:
-        atlas = xatlas.Atlas()
-        for _, _, faces, _ in groups:
-            corners = mesh.faces[faces]
-            used, local = torch.unique(corners.reshape(-1), return_inverse=True)
-            atlas.add_mesh(mesh.positions[used].double().numpy(), local.reshape(-1, 3).numpy().astype(np.uint32))
-        options = xatlas.PackOptions()
-        options.padding, options.texels_per_unit, options.bilinear = PADDING, density, True
-        atlas.generate(xatlas.ChartOptions(), options)
-        if max(atlas.width, atlas.height) <= MAX_SIDE:
+        blocks = [_unwrap(mesh, faces, density) for _, _, faces, _ in groups]
+        places, atlas_width, atlas_height = _shelves([(w, h) for (h, w), _, _, _ in blocks], width)
+        if max(atlas_width, atlas_height) <= MAX_SIDE:
             break
-        density *= 0.95 * MAX_SIDE / max(atlas.width, atlas.height)
-    atlas_width, atlas_height = atlas.width, atlas.height
+        density *= 0.95 * MAX_SIDE / max(atlas_width, atlas_height)
     # Layout: the old texture, under it a copy of its top row (what its bottom row wraps onto), the
     # atlas, then a copy of its bottom row (what its top row wraps onto); the old texture's right-hand
     # neighbour columns likewise where the atlas is wider.
@@ -137,22 +128,18 @@ def _chart_material(mesh: Mesh, material: int, parts: list) -> tuple | None:
     paint = np.zeros((atlas_height, atlas_width, 3), dtype=np.float32)
     owned = np.zeros((atlas_height, atlas_width), dtype=bool)
     by_part = {}
-    for group, (key, start, faces, colour) in enumerate(groups):
-        sources, indices, uvs = atlas[group]
+    for (key, start, faces, colour), (block, sources, indices, texels), (left, top) in zip(groups, blocks, places):
+        block_height, block_width = block
+        paint[top: top + block_height, left: left + block_width] = colour.numpy()
+        owned[top: top + block_height, left: left + block_width] = True
+        row = texels[:, 1] + top + height + 1
+        new_uvs = torch.from_numpy(np.stack([(texels[:, 0] + left) / new_width, 1 - row / new_height], 1)).float()
         used = torch.unique(mesh.faces[faces].reshape(-1))
-        for triangle in indices:
-            rows, cols = _raster(np.stack([uvs[triangle, 0] * atlas_width, (1 - uvs[triangle, 1]) * atlas_height], 1),
-                                 atlas_height, atlas_width)
-            paint[rows, cols] = colour.numpy()
-            owned[rows, cols] = True
-        texel = np.stack([uvs[:, 0] * atlas_width, (1 - uvs[:, 1]) * atlas_height + height + 1], 1)
-        new_uvs = torch.from_numpy(np.stack([texel[:, 0] / new_width, 1 - texel[:, 1] / new_height], 1)).float()
-        local_sources = used[torch.from_numpy(sources.astype(np.int64))] - start
         entry = by_part.setdefault(key, ([], [], []))
         entry[0].append(faces)
-        entry[1].append((local_sources, torch.from_numpy(indices.astype(np.int64))))
+        entry[1].append((used[torch.from_numpy(sources)] - start, torch.from_numpy(indices)))
         entry[2].append(new_uvs)
-    if owned.any():  # gutters and gaps take the nearest chart texel's colour
+    if owned.any():  # the gutters between blocks take the nearest block's colour
         _, (nearest_rows, nearest_cols) = ndimage.distance_transform_edt(~owned, return_indices=True)
         paint = paint[nearest_rows, nearest_cols]
     image[height + 1: height + 1 + atlas_height, :atlas_width] = torch.from_numpy(paint)
@@ -255,18 +242,36 @@ def _row(row: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([row, row[-1:].expand(width - len(row), -1)]) if width > len(row) else row
 
 
-def _raster(corners: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and columns of the texels whose centre lies within RASTER_GROW texels of a triangle
-    (corners (3, 2) in texels, x right, y down): conservative, so a sliver still owns its texels."""
-    low = np.floor(corners.min(0) - RASTER_GROW).astype(int)
-    high = np.ceil(corners.max(0) + RASTER_GROW).astype(int)
-    cols, rows = np.meshgrid(np.arange(max(low[0], 0), min(high[0] + 1, width)),
-                             np.arange(max(low[1], 0), min(high[1] + 1, height)))
-    x, y = cols + 0.5, rows + 0.5
-    a, b, c = corners
-    orientation = np.sign((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])) or 1.0
-    inside = np.ones_like(x, dtype=bool)
-    for p, q in ((a, b), (b, c), (c, a)):
-        length = max(float(np.hypot(*(q - p))), 1e-9)
-        inside &= orientation * ((q[0] - p[0]) * (y - p[1]) - (q[1] - p[1]) * (x - p[0])) / length >= -RASTER_GROW
-    return rows[inside], cols[inside]
+def _unwrap(mesh: Mesh, faces: torch.Tensor, density: float) -> tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
+    """One part's faces of one colour unwrapped by xatlas at `density` texels per unit length: the
+    size (h, w) of the block that the colour fills (so that no filtering between its charts changes a colour), the new
+    vertices' sources (indices into the faces' sorted vertices), the faces on them, and their texel
+    positions (x right, y down) in the block."""
+    import xatlas
+
+    used, local = torch.unique(mesh.faces[faces].reshape(-1), return_inverse=True)
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(mesh.positions[used].double().numpy(), local.reshape(-1, 3).numpy().astype(np.uint32))
+    options = xatlas.PackOptions()
+    options.padding, options.texels_per_unit, options.bilinear = 1, density, True
+    atlas.generate(xatlas.ChartOptions(), options)
+    sources, indices, uvs = atlas[0]
+    texels = np.stack([uvs[:, 0] * atlas.width, (1 - uvs[:, 1]) * atlas.height], 1)
+    return (atlas.height, atlas.width), sources.astype(np.int64), indices.astype(np.int64), texels
+
+
+def _shelves(sizes: list[tuple[int, int]], width: int) -> tuple[list[tuple[int, int]], int, int]:
+    """Blocks (w, h) placed on shelves (the tallest first) GUTTER texels apart, the shelves as wide as
+    the texture, the widest block or a square holding them all: each block's (left, top), and the
+    atlas's width and height."""
+    order = sorted(range(len(sizes)), key=lambda i: (-sizes[i][1], i))
+    area = sum((w + GUTTER) * (h + GUTTER) for w, h in sizes)
+    shelf_width = max([width, math.ceil(math.sqrt(area)) + GUTTER] + [w + 2 * GUTTER for w, _ in sizes])
+    places, x, y, shelf_height = [None] * len(sizes), GUTTER, GUTTER, 0
+    for index in order:
+        w, h = sizes[index]
+        if x + w + GUTTER > shelf_width:
+            x, y, shelf_height = GUTTER, y + shelf_height + GUTTER, 0
+        places[index] = (x, y)
+        x, shelf_height = x + w + GUTTER, max(shelf_height, h)
+    return places, shelf_width, y + shelf_height + GUTTER
