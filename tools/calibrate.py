@@ -39,7 +39,8 @@ from meshseal import payload
 from meshseal.api import _Reading
 from meshseal.data.dataset import MeshDataset, collate
 from meshseal.distortions import gaussian_blur
-from meshseal.pipeline import batch_mark_grid, batch_texels_used, random_backgrounds, sample_views, spread_evidence
+from meshseal.pipeline import (batch_mark_grid, batch_texels_used, charted_item, random_backgrounds, sample_views,
+                               spread_evidence)
 from meshseal.render import MeshBatch, MeshRenderer
 
 
@@ -71,7 +72,9 @@ def variants(pictures: torch.Tensor, generator: torch.Generator, attacks: bool, 
 
 
 def mesh_batches(dataset: MeshDataset, index: int, device) -> tuple[MeshBatch, dict]:
-    batch = collate([dataset[index]], device)
+    """Test mesh `index` as the original detection prepares and the batch embedding marks (palette faces
+    charted, as `Watermarker.layout` charts them)."""
+    batch = charted_item(collate([dataset[index]], device))
     original = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces", "texture")))
     return original, batch
 
