@@ -8,11 +8,15 @@ metadata and read with the true camera; the mark's visibility (object PSNR and F
 original); and what charting alone changes (charted-unmarked against original: 'renders as before?').
 
     python experiments/palette_charts.py --data data [--engines ours eevee workbench cycles] [--meshes N]
+        [--without-charts]
+
+`--without-charts` measures the same as before charts existed (palette faces left as they are).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,7 +27,7 @@ import meshseal
 from meshseal import payload
 from meshseal.api import PALETTE_WARNING
 from meshseal.data.dataset import MeshDataset
-from meshseal.mesh import normalize, to_z_up
+from meshseal.mesh import charts, normalize, to_z_up
 from meshseal.metrics import visibility
 from meshseal.models.spread import palette_share
 from meshseal.pipeline import sample_views
@@ -37,7 +41,10 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--engines", nargs="+", default=["ours", "eevee", "workbench", "cycles"])
     parser.add_argument("--meshes", type=int, default=None, help="at most this many palette meshes")
+    parser.add_argument("--without-charts", action="store_true", help="palette faces left as they are (before charts)")
     args = parser.parse_args()
+    if args.without_charts:
+        charts.CHART_ABOVE = math.inf
     wm = meshseal.load()
     dataset = MeshDataset(args.data, "test")
     renderers = {engine: make_renderer(engine) for engine in args.engines}

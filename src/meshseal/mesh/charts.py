@@ -81,8 +81,9 @@ def chart_palette_faces(mesh: Mesh) -> Mesh:
 
 
 def _chart_material(mesh: Mesh, material: int, parts: list) -> tuple | None:
-    """One material's charts: its new texture, the affine map of its old UVs into it, and per
-    geometry the palette faces (local indices), the new vertices' sources (local) and UVs."""
+    """One material's charts: its new texture, the affine map (scale, offset) of its old UVs into it,
+    and per geometry key the palette faces of its first instance (mesh indices), the new vertices'
+    sources (indices within the part) with the faces on them, and the new vertices' UVs, per colour."""
     texture = mesh.materials[material].texture
     height, width = texture.shape[:2]
     palette = palette_faces(mesh, material)
