@@ -138,7 +138,8 @@ def accuracy(model: WatermarkModel, inputs: torch.Tensor, messages: torch.Tensor
 def finetune(model: WatermarkModel, train_set, test_set, cfg: FinetuneConfig, out: Path, log=print) -> dict:
     """Steps 1-3 of the module docstring; returns the figures written to OUT/finetune.json."""
     if model.decoder is None or not any(p.requires_grad for p in model.decoder.parameters()):
-        raise MeshsealError("this model's decoder has no learned parameters (a matched filter): there is nothing "
+        reader = "a matched filter" if model.config.decoder == "matched" else f"the '{model.config.decoder}' reader"
+        raise MeshsealError(f"this model's decoder has no learned parameters ({reader}): there is nothing "
                             "to fine-tune; it reads every engine as it is (docs/engines.md)")
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
