@@ -96,3 +96,37 @@ def test_palette_faces_carry_the_mark_through_files(tmp_path, capsys, suffix):
     assert main(["detect", str(picture), "--mesh", str(original), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["detected"] and result["message"] == "ab42"
+
+
+def test_instances_of_one_geometry_are_charted_alike_and_written_once(tmp_path):
+    """A glTF whose two nodes show one geometry: both instances get the same charts, so the file (which
+    holds the geometry once) renders as the charted mesh in memory, and the mark reads from it."""
+    import trimesh
+    from PIL import Image
+
+    mesh = palette_sphere()
+    image = Image.fromarray((mesh.materials[0].texture.numpy() * 255).round().astype(np.uint8))
+    visual = trimesh.visual.TextureVisuals(uv=mesh.uvs.numpy(), material=trimesh.visual.material.SimpleMaterial(image=image))
+    geometry = trimesh.Trimesh(vertices=mesh.positions.numpy(), faces=mesh.faces.numpy(),
+                               vertex_normals=mesh.normals.numpy(), visual=visual, process=False)
+    scene = trimesh.Scene()
+    scene.add_geometry(geometry, node_name="a", geom_name="sphere")
+    moved = np.eye(4)
+    moved[0, 3] = 2.5
+    scene.graph.update(frame_to="b", frame_from=scene.graph.base_frame, geometry="sphere", matrix=moved)
+    scene.export(tmp_path / "two.glb")
+    original = meshseal.load_mesh(tmp_path / "two.glb")
+    assert [p.geometry for p in original.source.parts] == ["sphere", "sphere"]
+    marked = meshseal.load().embed(original, "ab42")
+    first, second = marked.source.parts
+    assert first.vertices.stop - first.vertices.start == second.vertices.stop - second.vertices.start
+    assert torch.equal(marked.uvs[first.vertices], marked.uvs[second.vertices])
+    save(marked, tmp_path / "marked.glb")
+    reloaded = meshseal.load_mesh(tmp_path / "marked.glb")
+    assert float((_render(reloaded) - _render(marked)).abs().max()) < 2 / 255
+    picture = _render(reloaded, views=1)[0]
+    generator = torch.Generator().manual_seed(5)
+    cameras = sample_any_view_cameras(1, generator)
+    wm = meshseal.load()
+    result = wm.decide([wm.read(picture.permute(1, 2, 0).numpy(), wm.original(original), camera=cameras)])
+    assert result.detected and result.message == "ab42"
