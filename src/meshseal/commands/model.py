@@ -224,9 +224,11 @@ def write_preview(path: Path, original, marked, renders) -> None:
     pairs = ([(resampled_like(*textures[0]), textures[0][1])] if textures else []) + [renders]
     width = 256
     for before, after in pairs:
-        height_of, width_of = before.shape[-2:]  # fitted into the square, its aspect kept (a charted texture is tall)
-        size = (max(1, round(width * height_of / max(height_of, width_of))), max(1, round(width * width_of / max(height_of, width_of))))
-        before, after = (torch.nn.functional.interpolate(x[None].float(), size=size, mode="area")[0] for x in (before, after))
+        rows_of, cols_of = before.shape[-2:]  # fitted into the square, its aspect kept (a charted texture is tall)
+        fit = width / max(rows_of, cols_of)
+        size = (max(1, round(rows_of * fit)), max(1, round(cols_of * fit)))
+        before, after = (torch.nn.functional.interpolate(x[None].float(), size=size, mode="area")[0]
+                         for x in (before, after))
         tiles = [before, after, (0.5 + 4.0 * (after - before)).clamp(0, 1)]
         rows.append(torch.cat([torch.nn.functional.pad(tile, (0, width - size[1], 0, width - size[0]), value=0.5)
                                for tile in tiles], dim=2))

@@ -152,7 +152,8 @@ def _chart_material(mesh: Mesh, material: int, parts: list) -> tuple | None:
 def _assemble(mesh: Mesh, parts: list, charted: dict) -> Mesh:
     """The charted mesh: each part's vertices (old UVs mapped into the new textures), then its new
     chart vertices; the palette faces re-indexed onto them."""
-    materials = [replace(m, texture=charted[i][0]) if i in charted else replace(m) for i, m in enumerate(mesh.materials)]
+    materials = [replace(m, texture=charted[i][0]) if i in charted else replace(m)
+                 for i, m in enumerate(mesh.materials)]
     uvs = mesh.uvs.clone()
     for index, (_, (scale, offset), _) in charted.items():
         vertices = torch.unique(mesh.faces[mesh.face_material == index].reshape(-1))
@@ -243,7 +244,8 @@ def _row(row: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([row, row[-1:].expand(width - len(row), -1)]) if width > len(row) else row
 
 
-def _unwrap(mesh: Mesh, faces: torch.Tensor, density: float) -> tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
+def _unwrap(mesh: Mesh, faces: torch.Tensor,
+            density: float) -> tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
     """One part's faces of one colour unwrapped by xatlas at `density` texels per unit length: the
     size (h, w) of the block that the colour fills (so that no filtering between its charts changes a colour), the new
     vertices' sources (indices into the faces' sorted vertices), the faces on them, and their texel

@@ -329,7 +329,8 @@ def _rebuilt(geometry, mesh: Mesh, part):
 
     faces = (mesh.faces[part.faces] - part.vertices.start).cpu().numpy()
     vertices = np.zeros((part.vertices.stop - part.vertices.start, 3))
-    visual = trimesh.visual.TextureVisuals(uv=np.zeros((len(vertices), 2)), material=getattr(geometry.visual, "material", None))
+    material = getattr(geometry.visual, "material", None)
+    visual = trimesh.visual.TextureVisuals(uv=np.zeros((len(vertices), 2)), material=material)
     return trimesh.Trimesh(vertices=vertices, faces=faces, visual=visual, process=False)
 
 
