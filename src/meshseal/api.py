@@ -253,15 +253,7 @@ class Watermarker:
         if self.surface and textured and marked.uvs is not None:
             self._mark_surface(mesh, marked, message, strength)
         elif encoder.texture_encoder is not None and textured and marked.uvs is not None:
-            charted = self.layout(marked)
-            if charted is not marked:
-                sizes = [f"{a.texture.shape[1]}x{a.texture.shape[0]} -> {b.texture.shape[1]}x{b.texture.shape[0]}"
-                         for a, b in zip(marked.materials, charted.materials) if a.texture is not None
-                         and a.texture.shape != b.texture.shape]
-                print(f"meshseal: note: faces without UV area (the texture used as a colour palette) got charts of "
-                      f"their own so that they carry the mark too: {charted.n_vertices - marked.n_vertices} vertices "
-                      f"added, texture {', '.join(sizes)}", file=sys.stderr)
-                marked = charted
+            marked = self.layout(marked, note=True)
             grid = self.mark_grid(marked)
             palette = palette_share(marked.positions, _textured_faces(marked), marked.uvs)
             if palette >= PALETTE_WARNING:
@@ -342,13 +334,22 @@ class Watermarker:
         mesh = self.layout(mesh)
         return self.model.mark_grid(mesh.positions, _textured_faces(mesh), mesh.uvs)
 
-    def layout(self, mesh: Mesh) -> Mesh:
+    def layout(self, mesh: Mesh, note: bool = False) -> Mesh:
         """`mesh` as this model marks it, and as detection takes the original: spread-spectrum marks
         first give faces without UV area charts of their own (`mesh.charts`: a palette texture), so that
-        they carry the mark too; other models take the mesh as it is."""
+        they carry the mark too; other models take the mesh as it is. A charted mesh is its own layout,
+        so `embed` of a layout charts nothing twice. `note`: say on stderr what charting added."""
         from .mesh.charts import chart_palette_faces
 
-        return chart_palette_faces(mesh) if self.calibrated else mesh
+        charted = chart_palette_faces(mesh) if self.calibrated else mesh
+        if note and charted is not mesh:
+            sizes = [f"{a.texture.shape[1]}x{a.texture.shape[0]} -> {b.texture.shape[1]}x{b.texture.shape[0]}"
+                     for a, b in zip(mesh.materials, charted.materials)
+                     if a.texture is not None and a.texture.shape != b.texture.shape]
+            print(f"meshseal: note: faces without UV area (the texture used as a colour palette) got charts of "
+                  f"their own so that they carry the mark too: {charted.n_vertices - mesh.n_vertices} vertices "
+                  f"added, texture {', '.join(sizes)}", file=sys.stderr)
+        return charted
 
     # ------------------------------------------------------------ detect
     @torch.no_grad()

@@ -251,15 +251,15 @@ def run_embed(args) -> int:
             raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
         check_output(args.preview, mesh.source.input_files)
     key = _key(args)
+    base = watermarker.layout(mesh, note=True)  # what the mark is added to (palette faces charted), charted once
     if args.bits is not None:
-        marked = watermarker.embed(mesh, bits=args.bits, key=key, strength=args.strength)
+        marked = watermarker.embed(base, bits=args.bits, key=key, strength=args.strength)
     else:
-        marked = watermarker.embed(mesh, args.message if args.id is None else args.id, key=key, strength=args.strength)
+        marked = watermarker.embed(base, args.message if args.id is None else args.id, key=key, strength=args.strength)
     written = save(marked, args.output)
-    base = watermarker.layout(mesh)  # the texture the mark was added to (palette faces charted)
     report, renders = embed_report(base, marked, args.views)
     report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": args.strength,
-               "cells": watermarker.mark_grid(mesh), "keyed": key is not None, "output": str(args.output)}
+               "cells": watermarker.mark_grid(base), "keyed": key is not None, "output": str(args.output)}
     if args.preview is not None:
         write_preview(args.preview, base, marked, renders)
         report["preview"] = str(args.preview)
