@@ -313,13 +313,15 @@ def charted_item(batch: dict, index: int = 0) -> dict:
 
     positions, normals, uvs, faces = unpadded(batch, index)
     texture = batch["texture"][index]
-    mesh = Mesh(positions.cpu(), normals.cpu(), faces.cpu(), uvs.cpu(), materials=[Material(texture=texture.permute(1, 2, 0).cpu())])
+    mesh = Mesh(positions.cpu(), normals.cpu(), faces.cpu(), uvs.cpu(),
+                materials=[Material(texture=texture.permute(1, 2, 0).cpu())])
     charted = chart_palette_faces(mesh)
     device = texture.device
     return {"positions": charted.positions[None].to(device), "normals": charted.normals[None].to(device),
             "uvs": charted.uvs[None].to(device), "faces": charted.faces[None].to(device),
             "texture": charted.materials[0].texture.permute(2, 0, 1)[None].contiguous().to(device),
-            "n_verts": torch.tensor([charted.n_vertices], device=device), "n_faces": torch.tensor([charted.n_faces], device=device)}
+            "n_verts": torch.tensor([charted.n_vertices], device=device),
+            "n_faces": torch.tensor([charted.n_faces], device=device)}
 
 
 def batch_mark_grid(model: WatermarkModel, batch: dict, index: int = 0) -> int | None:
