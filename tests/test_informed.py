@@ -141,6 +141,31 @@ def test_registration_of_an_object_the_frame_cuts_off():
     assert pose_error(mesh, cut, found.camera, 160, 160) < 1.0
 
 
+def test_registration_tries_more_views_where_the_texture_disagrees(monkeypatch):
+    """Where the view refined first is wrong (here forced: the first pass keeps only the candidate
+    facing most away from the true camera), the texture explains the picture poorly and registration
+    tries more candidate views (RETRY_KEEP), which find the view; without them it stays wrong."""
+    from meshseal import register as registration
+
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    out = MeshRenderer()(mesh, camera, lights, 160, 160, (0.5, 0.5, 0.5))
+    picture, mask = out.image[0], out.rgba[0, ..., 3] > 0.5
+    truth = torch.nn.functional.normalize(camera.eye - camera.at, dim=-1)[0]
+    distinct = registration._distinct
+
+    def wrong_first(scores, directions, keep, min_angle=30.0, away_from=()):
+        if away_from:
+            return distinct(scores, directions, keep, min_angle, away_from)
+        return [int((directions @ truth).argmin())]
+
+    monkeypatch.setattr(registration, "_distinct", wrong_first)
+    found = register(mesh, picture, mask, torch.tensor([0.5, 0.5, 0.5]))
+    assert pose_error(mesh, camera, found.camera, 160, 160) < 1.0
+    monkeypatch.setattr(registration, "RETRY_KEEP", 0)
+    stuck = register(mesh, picture, mask, torch.tensor([0.5, 0.5, 0.5]))
+    assert pose_error(mesh, camera, stuck.camera, 160, 160) > 5.0
+
+
 def test_texture_refinement_survives_a_flat_picture():
     """A picture of one colour gives the texture stage nothing to align on: it still returns a finite
     camera (a singular Gauss-Newton system, from a band with no gradient, is a stop, not a crash)."""

@@ -5,7 +5,8 @@ picture is cropped to the object's square box (as `framing` does); candidate vie
 mesh are rendered, framed the same way and scored by silhouette overlap and by how well the picture's
 colours fit the mesh's texture under the best-fitting simple lighting; the best few are refined on
 their silhouettes, the one whose texture fits best is refined again, and the camera of the whole
-picture is finished on the texture. Every refinement is Gauss-Newton on a rigid move whose Jacobian is
+picture is finished on the texture; where the texture then still fits poorly, more candidate views,
+nearer each other, get the same treatment. Every refinement is Gauss-Newton on a rigid move whose Jacobian is
 an image gradient times the move's analytic screen flow (Lucas-Kanade style: one render per
 iteration, no backward pass).
 """
@@ -40,6 +41,9 @@ TEXTURE_IOU_SLACK = 0.04  # the texture stage's camera is kept only if its silho
 FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-pixel one left this share of the misfit or more
 ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (registered: 0.01-0.03; a wrong view: about 2)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
+RETRY_ABOVE = 0.4  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
+RETRY_KEEP = 8
+RETRY_ANGLE = 15.0  # ... at least this many degrees from each other and from the views refined first
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -593,17 +597,42 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     return jacobian.reshape(6, -1).T
 
 
-def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0) -> list[int]:
+def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0,
+              away_from: list[int] = ()) -> list[int]:
     """The `keep` best-scoring candidates whose view directions are at least `min_angle` degrees apart
-    (the runner-up views of one mode would only repeat the best's refinement)."""
+    (the runner-up views of one mode would only repeat the best's refinement), and as far from those
+    of `away_from`."""
     chosen: list[int] = []
     cosine = math.cos(math.radians(min_angle))
     for index in scores.argsort(descending=True).tolist():
-        if all(float(directions[index] @ directions[other]) < cosine for other in chosen):
+        if not math.isfinite(float(scores[index])):
+            break
+        if all(float(directions[index] @ directions[other]) < cosine for other in [*away_from, *chosen]):
             chosen.append(index)
             if len(chosen) == keep:
                 break
     return chosen
+
+
+def _refine_candidates(mesh: MeshBatch, cameras: Cameras, levels, margin: float = PICK_MARGIN):
+    """Candidate `cameras` (best-scored first) refined coarsely on their silhouettes, their texture
+    misfits (PICK_SIGMAS; inf for a candidate whose refined silhouette overlaps clearly worse than the
+    best one's) and the index picked: the first, unless another fits the texture better than `margin`
+    times its misfit."""
+    refined = cameras
+    for sigma in COARSE_SILHOUETTE_SIGMAS:
+        refined = _refine_silhouettes(mesh, refined, levels[COMPARE_SIZE], sigma)
+    # Symmetric shapes leave several views with the same silhouette: the texture tells them apart. The
+    # best-scored candidate stays unless another fits the texture clearly better: a candidate a few
+    # degrees off fits the fine bands as badly as a wrong view (it was the right one in 55 of 60 test
+    # pictures, and a plain minimum threw it away in 9 of them).
+    # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
+    target, target_mask, _ = levels[SEARCH_SIZE]
+    overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
+    misfits = [texture_misfit(mesh, refined[[i]], target, target_mask[:, 0], PICK_SIGMAS)
+               if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK else math.inf for i in range(len(refined))]
+    pick = min(range(len(refined)), key=misfits.__getitem__)
+    return refined, misfits, (pick if misfits[pick] < margin * misfits[0] else 0)
 
 
 def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, background: torch.Tensor,
@@ -635,20 +664,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
     # 2. Refine the best few coarsely, then the best of them finely, on blurred silhouettes (a wider
     # blur first: its basin is wider).
-    refined = search[best]
-    for sigma in COARSE_SILHOUETTE_SIGMAS:
-        refined = _refine_silhouettes(mesh, refined, levels[COMPARE_SIZE], sigma)
-    # Symmetric shapes leave several views with the same silhouette: the texture tells them apart. The
-    # best-scored candidate stays unless another fits the texture clearly better: a candidate a few
-    # degrees off fits the fine bands as badly as a wrong view (it was the right one in 55 of 60 test
-    # pictures, and a plain minimum threw it away in 9 of them).
-    # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
-    target, target_mask, _ = levels[SEARCH_SIZE]
-    overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
-    misfits = [texture_misfit(mesh, refined[[i]], target, target_mask[:, 0], PICK_SIGMAS)
-               if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK else math.inf for i in range(len(refined))]
-    pick = min(range(len(refined)), key=misfits.__getitem__)
-    chosen = pick if misfits[pick] < PICK_MARGIN * misfits[0] else 0
+    refined, misfits, chosen = _refine_candidates(mesh, search[best], levels)
     others = sorted((i for i in range(len(refined)) if i != chosen and math.isfinite(misfits[i])), key=misfits.__getitem__)
 
     def finish(camera: Cameras) -> Cameras:
@@ -667,7 +683,26 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
     camera = finish(refined[[chosen]])
     alternatives = tuple(partial(finish, refined[[i]]) for i in others[:ALTERNATIVES])
+    if texture_refine and RETRY_KEEP:
+        # 4. A registration the texture does not confirm tries more views, nearer each other: a view
+        # within 5-7 degrees of the truth can rank far down the first score and lose its place among
+        # the first few to a higher-scored one 20 degrees off.
+        full, full_mask = picture[None].clamp(0, 1), mask[None].float()
+        misfit = texture_misfit(mesh, camera, full, full_mask, PICK_SIGMAS)
+        more = _distinct(scores, directions, RETRY_KEEP, RETRY_ANGLE, away_from=best) if misfit > RETRY_ABOVE else []
+        if more:
+            extra, extra_misfits, extra_chosen = _refine_candidates(mesh, search[more], levels, margin=1.0)
+            if math.isfinite(extra_misfits[extra_chosen]):
+                other = finish(extra[[extra_chosen]])
+                if texture_misfit(mesh, other, full, full_mask, PICK_SIGMAS) < misfit:
+                    alternatives = (partial(_as_found, camera), *alternatives[:ALTERNATIVES - 1])
+                    camera = other
     return Registration(camera, box[0], silhouette_iou(mesh, camera, mask), alternatives)
+
+
+def _as_found(camera: Cameras) -> Cameras:
+    """An alternative (`Registration.alternatives`) already refined: the camera itself."""
+    return camera
 
 
 def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,
