@@ -3,12 +3,12 @@
 Informed detection un-renders a picture onto the original mesh, so it needs the picture's camera. The
 picture is cropped to the object's square box (as `framing` does); candidate views from all around the
 mesh are rendered, framed the same way and scored by silhouette overlap and by how well the picture's
-colours fit the mesh's texture under the best-fitting simple lighting; the best few are refined on
-their silhouettes, the one whose texture fits best is refined again, and the camera of the whole
-picture is finished on the texture; where the texture then still fits poorly, more candidate views,
-nearer each other, get the same treatment. Every refinement is Gauss-Newton on a rigid move whose Jacobian is
-an image gradient times the move's analytic screen flow (Lucas-Kanade style: one render per
-iteration, no backward pass).
+colours fit the mesh's texture under the best-fitting simple lighting; the best few are refined on their
+silhouettes, the one whose texture fits best is refined again, and the camera of the whole picture is
+finished on the texture; where the texture then still fits poorly, more candidate views, nearer each
+other, get the same treatment. Every refinement is Gauss-Newton on a rigid move whose Jacobian is an
+image gradient times the move's analytic screen flow (Lucas-Kanade style: one render per iteration, no
+backward pass).
 """
 
 from __future__ import annotations
@@ -605,7 +605,7 @@ def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_ang
     chosen: list[int] = []
     cosine = math.cos(math.radians(min_angle))
     for index in scores.argsort(descending=True).tolist():
-        if not math.isfinite(float(scores[index])):
+        if not math.isfinite(float(scores[index])):  # the rest were never scored
             break
         if all(float(directions[index] @ directions[other]) < cosine for other in [*away_from, *chosen]):
             chosen.append(index)
