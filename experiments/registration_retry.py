@@ -28,9 +28,10 @@ import meshseal
 from meshseal import payload
 from meshseal import register as registration
 from meshseal.data.dataset import MeshDataset, collate
-from meshseal.pipeline import batch_mark_grid, batch_texels_used, random_backgrounds, sample_views
+from meshseal.pipeline import batch_mark_grid, batch_texels_used, sample_views
 from meshseal.register import pose_error
 from meshseal.render import MeshBatch, MeshRenderer
+from registration_conditions import background_for  # experiments/registration_conditions.py
 
 SETTINGS = {"off": 0, "on": registration.RETRY_KEEP}
 
@@ -48,7 +49,7 @@ def picture(model, batch, seed: int):
         out = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights, 256, 256,
                              torch.zeros(1, 3))
         alpha = out.rgba[0, ..., 3][None]
-        composed = (out.image[0] + (1 - alpha) * random_backgrounds(1, generator)[0][:, None, None]).clamp(0, 1)
+        composed = (out.image[0] + (1 - alpha) * background_for("plain", 256, generator, [])).clamp(0, 1)
     pixels = (composed.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8).astype(np.float32) / 255
     return pixels, cameras, MeshBatch.from_tensors(positions, normals, uvs, faces, texture), message
 
