@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 import meshseal
-from meshseal import payload
+from meshseal import api, payload
 from meshseal import register as registration
 from meshseal.data.dataset import MeshDataset, collate
 from meshseal.pipeline import batch_mark_grid, batch_texels_used, sample_views
@@ -33,20 +33,33 @@ from meshseal.register import pose_error
 from meshseal.render import MeshBatch, MeshRenderer
 from registration_conditions import background_for  # experiments/registration_conditions.py
 
-SETTINGS = {"off": 0, "on": registration.RETRY_KEEP}
+SHIPPED = (registration.RETRY_ABOVE, registration.RETRY_KEEP, registration.RETRY_ANGLE, api.LOOK_AGAIN_BELOW)
+SETTINGS = {"off": (SHIPPED[0], 0, *SHIPPED[2:]), "on": SHIPPED}  # name: (RETRY_ABOVE, RETRY_KEEP, RETRY_ANGLE, LOOK_AGAIN_BELOW)
 
 
-def picture(model, batch, seed: int):
-    """The marked mesh's 8-bit picture (256, 256, 3) float, its true camera, the original and the message."""
+def parse_setting(text: str) -> tuple[str, tuple[float, int, float, float]]:
+    """NAME=ABOVE,KEEP,ANGLE[,LOOK] (register's RETRY_ABOVE, RETRY_KEEP, RETRY_ANGLE; api's LOOK_AGAIN_BELOW)."""
+    name, _, values = text.partition("=")
+    above, keep, angle, *look = values.split(",")
+    return name, (float(above), int(keep), float(angle), float(look[0]) if look else SHIPPED[3])
+
+
+def use(setting: tuple[float, int, float, float]) -> None:
+    registration.RETRY_ABOVE, registration.RETRY_KEEP, registration.RETRY_ANGLE, api.LOOK_AGAIN_BELOW = setting
+
+
+def picture(model, batch, seed: int, marked: bool = True):
+    """The marked (or the original) mesh's 8-bit picture (256, 256, 3) float, its true camera, the
+    original and the message."""
     positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
     generator = torch.Generator().manual_seed(seed)
     identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
     message = payload.encode(identity, None, model.n_bits)[None]
     with torch.no_grad():
-        marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch),
-                                    batch_texels_used(batch))
+        shown = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch),
+                                   batch_texels_used(batch)) if marked else texture
         cameras, lights = sample_views(1, "seed", generator)
-        out = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights, 256, 256,
+        out = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, shown), cameras, lights, 256, 256,
                              torch.zeros(1, 3))
         alpha = out.rgba[0, ..., 3][None]
         composed = (out.image[0] + (1 - alpha) * background_for("plain", 256, generator, [])).clamp(0, 1)
@@ -72,15 +85,20 @@ def read(wm, pixels, original, message, cameras, register: bool) -> dict:
 
 
 def summarize(rows: list[dict]) -> None:
+    names = [name for name in rows[0] if name not in ("mesh", "known")] if rows else []
+    rows = [row for row in rows if all(name in row for name in names)]
     for row in rows:
-        off, on = row["off"], row["on"]
-        if abs(off["bits"] - on["bits"]) > 1e-3 or abs(off["pose"] - on["pose"]) > 0.05:
-            print(f"mesh {row['mesh']}: bits {off['bits']:.3f} -> {on['bits']:.3f}, pose {off['pose']:.2f} -> {on['pose']:.2f} px")
+        first = row[names[0]]
+        for name in names[1:]:
+            other = row[name]
+            if abs(first["bits"] - other["bits"]) > 1e-3 or abs(first["pose"] - other["pose"]) > 0.05:
+                print(f"mesh {row['mesh']} {names[0]} -> {name}: bits {first['bits']:.3f} -> {other['bits']:.3f}, "
+                      f"pose {first['pose']:.2f} -> {other['pose']:.2f} px")
     count = len(rows)
     print(f"{count} pictures; true camera: bit accuracy {np.mean([r['known']['bits'] for r in rows]):.4f}")
     print("| retry | bit acc. registered | registration success | detected (FPR 1e-6) | s / picture |")
     print("|---|---|---|---|---|")
-    for name in SETTINGS:
+    for name in names:
         group = [r[name] for r in rows]
         success = np.mean([(g["pose"] < 0.5) or (g["iou"] >= 0.95) for g in group])
         print(f"| {name} | {np.mean([g['bits'] for g in group]):.4f} | {success:.3f} | "
@@ -97,6 +115,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7000)
     parser.add_argument("--jsonl", type=Path, default=None, help="one JSON line per picture")
     parser.add_argument("--summarize", type=Path, nargs="+", default=None, help="JSONL files of earlier runs")
+    parser.add_argument("--unmarked", action="store_true",
+                        help="pictures of the original (the time an unmarked picture costs; its false detections)")
+    parser.add_argument("--setting", type=parse_setting, action="append", default=None,
+                        help="NAME=ABOVE,KEEP,ANGLE[,LOOK]: a setting to compare (default: the retry off and the shipped one)")
     args = parser.parse_args()
     if args.summarize:
         summarize([json.loads(line) for path in args.summarize for line in path.read_text().splitlines() if line])
@@ -104,14 +126,16 @@ def main() -> None:
     wm = meshseal.load()
     dataset = MeshDataset(args.data, args.split)
     log = args.jsonl.open("a") if args.jsonl else None
+    settings = dict(args.setting) if args.setting else SETTINGS
     rows = []
     for drawn, index in list(enumerate(range(0, len(dataset), args.stride)))[args.worker::args.workers]:
-        pixels, cameras, original, message = picture(wm.model, collate([dataset[index]], "cpu"), args.seed + drawn)
+        pixels, cameras, original, message = picture(wm.model, collate([dataset[index]], "cpu"), args.seed + drawn,
+                                                       marked=not args.unmarked)
         row = {"mesh": index, "known": read(wm, pixels, original, message, cameras, register=False)}
-        for name, keep in SETTINGS.items():
-            registration.RETRY_KEEP = keep
+        for name, setting in settings.items():
+            use(setting)
             row[name] = read(wm, pixels, original, message, cameras, register=True)
-        registration.RETRY_KEEP = SETTINGS["on"]
+        use(SHIPPED)
         rows.append(row)
         if log:
             log.write(json.dumps(row) + "\n")

@@ -437,6 +437,7 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     import meshseal.api as api
     from meshseal import payload
     from meshseal.api import Watermarker
+    from meshseal.register import Alternative
 
     model, message, original, marked = _original_and_marked_batches()
     marked.textures = [model.mark_texture(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
@@ -452,9 +453,9 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
         reading = watermarker.read(picture[0].permute(1, 2, 0).numpy(), original, camera=camera)
         return replace(reading, camera="registered", second_look=(picture, mask, alternatives))
 
-    first = registered_at(seen["marked"], turned, (lambda: turned, lambda: cameras))
+    first = registered_at(seen["marked"], turned, (Alternative(turned), Alternative(cameras)))
     plain = watermarker.decide([replace(first, second_look=())])
-    monkeypatch.setattr(api, "LOOK_AGAIN_BELOW", 1.0)  # look again whatever the first reading says
+    monkeypatch.setattr(api, "LOOK_AGAIN_BELOW", 1.0)  # finish every alternative whatever the first reading says
     again = watermarker.look_again(first, original)
     decision = watermarker.decide([again])
     assert not plain.detected and decision.detected and again.tries == 4 and not again.second_look
@@ -463,13 +464,47 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     single = watermarker.decide([replace(again, tries=1)])
     assert decision.p_value == pytest.approx(min(1.0, 4 * single.p_value), rel=1e-9)
     # Found at the registered camera: x2, no alternative tried.
-    direct = watermarker.look_again(registered_at(seen["marked"], cameras, (lambda: turned,)), original)
+    direct = watermarker.look_again(registered_at(seen["marked"], cameras, (Alternative(turned),)), original)
     assert direct.tries == 2 and torch.allclose(direct.found.eye, cameras.eye)
     # An unmarked picture: no camera finds a mark; pooling keeps the first camera and no factor.
-    clean = watermarker.look_again(registered_at(seen["clean"], turned, (lambda: cameras,)), original)
+    clean = watermarker.look_again(registered_at(seen["clean"], turned, (Alternative(cameras),)), original)
     assert not watermarker.decide([clean]).detected and clean.tries == 2
     pooled = watermarker.look_again(first, original, search=False)
     assert pooled.tries == 1 and not pooled.second_look and torch.equal(pooled.evidence, first.evidence)
+
+
+def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_mark(monkeypatch):
+    """Where the registered reading shows no hint of a mark, each alternative is read rough (refined on
+    its silhouettes alone) and finished on the texture only if that reading hints at one: the twin
+    view is finished and found, the view that shows nothing is never finished, and the p-value still
+    pays x2K for every alternative."""
+    import meshseal.api as api
+    from meshseal import payload
+    from meshseal.api import Watermarker
+    from meshseal.register import Alternative
+
+    model, message, original, marked = _original_and_marked_batches()
+    marked.textures = [model.mark_texture(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
+    watermarker = Watermarker(model)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    turned = replace(cameras, eye=cameras.eye * torch.tensor([-1.0, -1.0, 1.0]))
+    aside = replace(cameras, eye=cameras.eye[:, [1, 0, 2]] * torch.tensor([-1.0, 1.0, 1.0]))  # a quarter turn: another wrong view
+    with torch.no_grad():
+        picture = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+    mask = picture[0].sum(0) > 0
+    finished = []
+
+    def stages(rough):
+        """An alternative whose silhouettes give `rough` and whose texture stage lands on the truth."""
+        return Alternative(turned, lambda camera: rough, lambda camera: finished.append(rough) or cameras)
+
+    reading = watermarker.read(picture[0].permute(1, 2, 0).numpy(), original, camera=turned)
+    first = replace(reading, camera="registered", second_look=(picture, mask, (stages(aside), stages(cameras))))
+    assert watermarker.decide([replace(first, second_look=())]).p_value > api.LOOK_AGAIN_BELOW  # no hint
+    again = watermarker.look_again(first, original)
+    decision = watermarker.decide([again])
+    assert decision.detected and again.tries == 4 and torch.allclose(again.found.eye, cameras.eye)
+    assert len(finished) == 1 and finished[0] is cameras  # the view showing nothing was not finished
 
 
 def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(tmp_path):

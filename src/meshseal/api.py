@@ -202,7 +202,7 @@ def _load_image(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
 
 
 PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has faces without UV area
-LOOK_AGAIN_BELOW = 0.01  # a registered reading not detected is read under other views when its p-value is under this
+LOOK_AGAIN_BELOW = 0.05  # a second look finishes the other views where the first reading's p-value is under this, else those whose rough reading's is
 
 
 class Watermarker:
@@ -382,13 +382,15 @@ class Watermarker:
         """A registered reading, looked at again where its mark is not found: read under the
         registration's next-best views (`Registration.alternatives`: a near-symmetric shape's twin
         views fit its silhouette and texture alike, and only the keyed mark tells them apart), keeping
-        the camera whose reading is likeliest marked. Only where the registered camera's reading
-        already hints at a mark (p-value under LOOK_AGAIN_BELOW: a twin view of a symmetric asset
-        still reads part of the mark), so that unmarked pictures rarely pay for it. The p-value pays
-        for it (Bonferroni over two stages): x2 at the registered camera, x2K at the best of K
-        alternatives, so that a reading's p-value stays valid however the camera was picked. Other
-        readings, and all of them with `search` False (pooling), come back as they are, without what
-        a second look needs."""
+        the camera whose reading is likeliest marked. Where the registered camera's reading already
+        hints at a mark (p-value under LOOK_AGAIN_BELOW: a twin view of a symmetric asset still reads
+        part of the mark) each alternative is finished (refined on the texture) and read; else each
+        is first read as refined on its silhouettes alone, and finished only where that rough
+        reading hints at a mark, so that unmarked pictures pay little for it. The p-value pays for it
+        (Bonferroni over two stages): x2 at the registered camera, x2K at the best of K alternatives,
+        so that a reading's p-value stays valid however the camera was picked (rough readings only
+        decide what to finish). Other readings, and all of them with `search` False (pooling), come
+        back as they are, without what a second look needs."""
         from . import payload
         from .register import silhouette_iou
 
@@ -399,11 +401,16 @@ class Watermarker:
             return replace(reading, second_look=())
         first = replace(reading, second_look=(), tries=2)
         decision = self.decide([first], key, expect)
-        if decision.detected or decision.p_value > LOOK_AGAIN_BELOW:
+        if decision.detected:
             return first
+        hinted = decision.p_value <= LOOK_AGAIN_BELOW
         best, best_p = first, decision.p_value
-        for refine in alternatives:
-            camera = refine()
+        for alternative in alternatives:
+            if not (hinted or alternative.finished):
+                rough = replace(first, evidence=self._evidence(original, picture, alternative.rough()))
+                if self.decide([rough], key, expect).p_value > LOOK_AGAIN_BELOW:
+                    continue
+            camera = alternative.finish()
             other = replace(first, evidence=self._evidence(original, picture, camera), found=camera,
                              registration_iou=silhouette_iou(original, camera, mask), tries=2 * len(alternatives))
             p_value = self.decide([other], key, expect).p_value

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from functools import partial
 
 import torch
 import torch.nn.functional as F
@@ -41,9 +40,9 @@ TEXTURE_IOU_SLACK = 0.04  # the texture stage's camera is kept only if its silho
 FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-pixel one left this share of the misfit or more
 ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (registered: 0.01-0.03; a wrong view: about 2)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
-RETRY_ABOVE = 0.4  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
-RETRY_KEEP = 8
-RETRY_ANGLE = 15.0  # ... at least this many degrees from each other and from the views refined first
+RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
+RETRY_KEEP = 12
+RETRY_ANGLE = 12.0  # ... at least this many degrees from each other and from the views refined first
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -53,15 +52,36 @@ FOV = 60.0
 class Registration:
     """camera: the camera of the whole picture (its field of view as assumed, principal point at the
     centre); box: the object's square box (cx, cy, half) in the picture's pixels; iou: overlap of the
-    registered silhouette with the picture's. alternatives: for the next-best distinct views (up to
-    ALTERNATIVES, best first), each a function that refines that view as `camera` was refined and
-    returns its camera: a near-symmetric shape's twin views fit silhouette and texture alike, and
-    only the mark can tell them apart (`Watermarker.look_again`)."""
+    registered silhouette with the picture's. alternatives: the next-best distinct views (up to
+    ALTERNATIVES, best first, each an `Alternative`): a near-symmetric shape's twin views fit
+    silhouette and texture alike, and only the mark can tell them apart (`Watermarker.look_again`)."""
 
     camera: Cameras
     box: torch.Tensor
     iou: float
     alternatives: tuple = ()
+
+
+class Alternative:
+    """A next-best view of a registration, refined only when asked: `rough()` on its silhouettes
+    alone (a few renders: near enough to see whether the mark is there), `finish()` then on the
+    texture as the registered camera was. One given without stages is already finished."""
+
+    def __init__(self, camera: Cameras, silhouettes=None, texture=None):
+        self._camera, self._silhouettes, self._texture = camera, silhouettes, texture
+        self._rough: Cameras | None = None
+
+    @property
+    def finished(self) -> bool:
+        return self._texture is None
+
+    def rough(self) -> Cameras:
+        if self._rough is None:
+            self._rough = self._silhouettes(self._camera) if self._silhouettes else self._camera
+        return self._rough
+
+    def finish(self) -> Cameras:
+        return self.rough() if self._texture is None else self._texture(self.rough())
 
 
 def _up_for(direction: torch.Tensor) -> torch.Tensor:
@@ -667,11 +687,14 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     refined, misfits, chosen = _refine_candidates(mesh, search[best], levels)
     others = sorted((i for i in range(len(refined)) if i != chosen and math.isfinite(misfits[i])), key=misfits.__getitem__)
 
-    def finish(camera: Cameras) -> Cameras:
-        """The picked candidate refined finely on silhouettes, then (3.) for the whole picture on the texture."""
+    def on_silhouettes(camera: Cameras) -> Cameras:
+        """The picked candidate refined finely on silhouettes: the camera of the whole picture."""
         for sigma in FINE_SILHOUETTE_SIGMAS:
             camera = _refine_silhouettes(mesh, camera, levels[SEARCH_SIZE], sigma)
-        camera = replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
+        return replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
+
+    def on_texture(camera: Cameras) -> Cameras:
+        """(3.) The whole picture's camera refined on the texture."""
         if texture_refine:
             refined = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
             # Where the original's texture explains the picture poorly (another engine's light and texture
@@ -681,8 +704,11 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
                 camera = refined
         return camera
 
+    def finish(camera: Cameras) -> Cameras:
+        return on_texture(on_silhouettes(camera))
+
     camera = finish(refined[[chosen]])
-    alternatives = tuple(partial(finish, refined[[i]]) for i in others[:ALTERNATIVES])
+    alternatives = tuple(Alternative(refined[[i]], on_silhouettes, on_texture) for i in others[:ALTERNATIVES])
     if texture_refine and RETRY_KEEP:
         # 4. A registration the texture does not confirm tries more views, nearer each other: a view
         # within 5-7 degrees of the truth can rank far down the first score and lose its place among
@@ -695,14 +721,9 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
             if math.isfinite(extra_misfits[extra_chosen]):
                 other = finish(extra[[extra_chosen]])
                 if texture_misfit(mesh, other, full, full_mask, PICK_SIGMAS) < misfit:
-                    alternatives = (partial(_as_found, camera), *alternatives[:ALTERNATIVES - 1])
+                    alternatives = (Alternative(camera), *alternatives[:ALTERNATIVES - 1])
                     camera = other
     return Registration(camera, box[0], silhouette_iou(mesh, camera, mask), alternatives)
-
-
-def _as_found(camera: Cameras) -> Cameras:
-    """An alternative (`Registration.alternatives`) already refined: the camera itself."""
-    return camera
 
 
 def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,
