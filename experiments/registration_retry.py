@@ -1,16 +1,20 @@
-"""Registration with and without its retry (`register.RETRY_KEEP`: more candidate views where the
-texture still fits poorly after the first pass), on the same pictures, back to back.
+"""Registration settings side by side on the same pictures: its retry (`register.RETRY_ABOVE`,
+`RETRY_KEEP`, `RETRY_ANGLE`: more candidate views where the texture still fits poorly after the first
+pass) and the second look's threshold (`api.LOOK_AGAIN_BELOW`).
 
 Every `--stride`-th mesh of a split (the train split by default: the retry was shaped on test pictures),
 the k-th one drawn seeded `--seed` + k, is marked as `registration_conditions.py` marks it (an
-error-corrected ID, the shipped default), seen from one seeded view at 256^2 on a plain random
-background, saved as 8-bit values, and read as `meshseal detect --mesh` reads it, once with the retry
-off and once on; the true camera's reading is the reference. Prints per-mesh changes and one summary row
-per setting: bit accuracy, registration success (pose error < 0.5 px or IoU >= 0.95), detection rate at
-FPR 1e-6, seconds per picture. Several processes can share the work (`--worker K --workers N`, one JSONL
-each; `--summarize` reads them).
+error-corrected ID, the shipped default; `--unmarked`: the original, for the time a picture without a
+mark costs and its false detections), seen from one seeded view at 256^2 on a plain random background,
+saved as 8-bit values, and read as `meshseal detect --mesh` reads it under each setting (`--setting
+NAME=ABOVE,KEEP,ANGLE[,LOOK]`; default: the retry off and the shipped setting); the true camera's
+reading is the reference. Prints per-mesh changes and one summary row per setting: bit accuracy,
+registration success (pose error < 0.5 px or IoU >= 0.95), detection rate at FPR 1e-6, seconds per
+picture. Several processes can share the work (`--worker K --workers N`, one JSONL each;
+`--summarize` reads them).
 
     python experiments/registration_retry.py --data data --stride 4 --jsonl runs/retry.jsonl
+    python experiments/registration_retry.py --data data --split test --stride 1 --setting first=0.4,8,15 --setting now=0.2,12,12
     python experiments/registration_retry.py --summarize runs/retry*.jsonl
 """
 
