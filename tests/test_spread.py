@@ -473,7 +473,7 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     assert pooled.tries == 1 and not pooled.second_look and torch.equal(pooled.evidence, first.evidence)
 
 
-def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_mark(monkeypatch):
+def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_mark():
     """Where the registered reading shows no hint of a mark, each alternative is read rough (refined on
     its silhouettes alone) and finished on the texture only if that reading hints at one: the twin
     view is finished and found, the view that shows nothing is never finished, and the p-value still
