@@ -114,6 +114,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path)
     parser.add_argument("--split", default="train")
     parser.add_argument("--stride", type=int, default=4, help="every N-th mesh of the split")
+    parser.add_argument("--first", type=int, default=None, help="only the first N meshes drawn")
     parser.add_argument("--worker", type=int, default=0)
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--seed", type=int, default=7000)
@@ -132,7 +133,7 @@ def main() -> None:
     log = args.jsonl.open("a") if args.jsonl else None
     settings = dict(args.setting) if args.setting else SETTINGS
     rows = []
-    for drawn, index in list(enumerate(range(0, len(dataset), args.stride)))[args.worker::args.workers]:
+    for drawn, index in list(enumerate(range(0, len(dataset), args.stride)))[:args.first][args.worker::args.workers]:
         pixels, cameras, original, message = picture(wm.model, collate([dataset[index]], "cpu"), args.seed + drawn,
                                                        marked=not args.unmarked)
         row = {"mesh": index, "known": read(wm, pixels, original, message, cameras, register=False)}

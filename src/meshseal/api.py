@@ -202,6 +202,7 @@ def _load_image(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
 
 
 PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has faces without UV area
+SHARPEN_ROUNDS = 2  # a second look sharpens the registered camera again (light refitted) where the first round's reading hints at a mark
 LOOK_AGAIN_BELOW = 0.05  # a second look finishes the other views where the first reading's p-value is under this, else those whose rough reading's is
 
 
@@ -379,45 +380,62 @@ class Watermarker:
         return results[0] if single else results
 
     def look_again(self, reading: _Reading, original, key=None, expect=None, search: bool = True) -> _Reading:
-        """A registered reading, looked at again where its mark is not found: read under the
-        registration's next-best views (`Registration.alternatives`: a near-symmetric shape's twin
-        views fit its silhouette and texture alike, and only the keyed mark tells them apart), keeping
-        the camera whose reading is likeliest marked. Where the registered camera's reading already
-        hints at a mark (p-value under LOOK_AGAIN_BELOW: a twin view of a symmetric asset still reads
-        part of the mark) each alternative is finished (refined on the texture) and read; else each
-        is first read as refined on its silhouettes alone, and finished only where that rough
-        reading hints at a mark, so that unmarked pictures pay little for it. The p-value pays for it
-        (Bonferroni over two stages): x2 at the registered camera, x2K at the best of K alternatives,
-        so that a reading's p-value stays valid however the camera was picked (rough readings only
-        decide what to finish). Other readings, and all of them with `search` False (pooling), come
-        back as they are, without what a second look needs."""
+        """A registered reading, looked at again where its mark is not found: first under the registered
+        camera sharpened on the reading's own residual (`register.sharpen`: a picture whose texture
+        aliases loses its mark to a tenth of a pixel of pose error), then under the registration's
+        next-best views (`Registration.alternatives`: a near-symmetric shape's twin views fit its
+        silhouette and texture alike, and only the keyed mark tells them apart), keeping the camera
+        whose reading is likeliest marked. Where the registered camera's reading already hints at a
+        mark (p-value under LOOK_AGAIN_BELOW: a twin view of a symmetric asset still reads part of the
+        mark) each alternative is finished (refined on the texture) and read; else each is first read
+        as refined on its silhouettes alone, and finished only where that rough reading hints at a
+        mark, so that unmarked pictures pay little for it. Sharpening runs again (light refitted at the
+        sharpened camera) where its first reading hints at a mark, SHARPEN_ROUNDS times at most. The
+        p-value pays for all of it (Bonferroni over three stages, each given a third: the registered
+        camera, the sharpened ones, the alternatives): x3 at the registered camera, x3R at a sharpened
+        one of R rounds, x3K at the best of K alternatives (x2 and x2R without alternatives), so that a
+        reading's p-value stays valid however the camera was picked (rough readings only decide what
+        to finish). Other readings, and all of them with `search` False (pooling), come back as they
+        are, without what a second look needs."""
         from . import payload
-        from .register import silhouette_iou
+        from .register import sharpen, silhouette_iou
 
         if not reading.second_look:
             return reading
         picture, mask, alternatives = reading.second_look
-        if not search or not self.calibrated or not alternatives:
+        if not search or not self.calibrated:
             return replace(reading, second_look=())
-        first = replace(reading, second_look=(), tries=2)
+        stages = 3 if alternatives else 2
+        first = replace(reading, second_look=(), tries=stages)
         decision = self.decide([first], key, expect)
         if decision.detected:
             return first
         hinted = decision.p_value <= LOOK_AGAIN_BELOW
         best, best_p = first, decision.p_value
+
+        def under(camera, tries: int) -> tuple[_Reading, float]:
+            other = replace(first, evidence=self._evidence(original, picture, camera), found=camera,
+                            registration_iou=silhouette_iou(original, camera, mask), tries=tries)
+            return other, self.decide([other], key, expect).p_value
+
+        camera = reading.found
+        for _ in range(SHARPEN_ROUNDS):  # each round refits the light at the camera the last one found
+            camera = sharpen(original, camera, picture, mask[None].float())
+            sharpened, p_value = under(camera, stages * SHARPEN_ROUNDS)
+            if p_value < best_p:
+                best, best_p = sharpened, p_value
+            if payload.detected(p_value) or p_value > LOOK_AGAIN_BELOW:
+                break
         for alternative in alternatives:
+            if payload.detected(best_p):
+                break  # every stage is paid for, tried or not
             if not (hinted or alternative.finished):
                 rough = replace(first, evidence=self._evidence(original, picture, alternative.rough()))
                 if self.decide([rough], key, expect).p_value > LOOK_AGAIN_BELOW:
                     continue
-            camera = alternative.finish()
-            other = replace(first, evidence=self._evidence(original, picture, camera), found=camera,
-                             registration_iou=silhouette_iou(original, camera, mask), tries=2 * len(alternatives))
-            p_value = self.decide([other], key, expect).p_value
+            other, p_value = under(alternative.finish(), stages * len(alternatives))
             if p_value < best_p:
                 best, best_p = other, p_value
-            if payload.detected(best_p):
-                break  # every alternative is paid for, tried or not
         return best
 
     def decide(self, readings: list[_Reading], key=None, expect=None) -> Detection:

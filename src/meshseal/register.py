@@ -43,6 +43,8 @@ SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap 
 RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
 RETRY_KEEP = 12
 RETRY_ANGLE = 12.0  # ... at least this many degrees from each other and from the views refined first
+SHARPEN_STEPS = (0.2, 0.025)  # pixels: `sharpen`'s first and last step
+SHARPEN_RENDERS = 150  # ... and at most this many renders
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -554,6 +556,60 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
         results.append(refine_on_texture(mesh, camera, picture, mask, light_from="flat"))
         misfits.append(texture_misfit(mesh, results[-1], picture, mask))
     return results[min(range(len(results)), key=misfits.__getitem__)]
+
+
+def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
+    """`camera` moved to where the relit original, rendered as the reading renders it (antialiased and
+    unfiltered, the light fitted once at `camera`), best explains the picture (1, 3, H, W) over its
+    interior pixels. A point-sampled texture a little finer than the pixels makes the picture alias:
+    a tenth of a pixel moves each pixel to other texels, the texture leaks into the residual the
+    reading subtracts and drowns the mark (a test picture registered 0.08 px off read 0.47 of its
+    bits, 1.0 at the true camera, its residual ten times larger there). The texture stage's band-passed
+    alignment cannot see that, and neither can image gradients (their Jacobian points elsewhere):
+    this is a pattern search, each of the six coordinates of `_moved` by +-step in one batch of
+    renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
+    most SHARPEN_RENDERS renders of the object's own window. Where it moves the camera to a worse
+    view, only the reading can tell: `api.Watermarker.look_again` reads both."""
+    height, width = picture.shape[-2:]
+    with torch.no_grad():
+        view = _relit_view(mesh, camera, picture, mask, margin=2)
+        if view is None:
+            return camera
+        fit, _, inside = view
+        # The object's square window, its edges on pixel edges so that its pixels are the picture's.
+        rows, columns = inside[0].any(1).nonzero()[:, 0], inside[0].any(0).nonzero()[:, 0]
+        top, bottom = int(rows[0]) - 2, int(rows[-1]) + 3
+        left, right = int(columns[0]) - 2, int(columns[-1]) + 3
+        side = max(bottom - top, right - left)
+        top, left = (top + bottom - side) // 2, (left + right - side) // 2
+        fov, principal = crop_intrinsics(height, width, (left + side / 2, top + side / 2, side / 2), camera.fov_y)
+        window = replace(camera, fov_y=fov, principal=principal)
+        padded = lambda x: F.pad(x, (max(0, -left), max(0, left + side - width), max(0, -top),  # noqa: E731
+                                     max(0, top + side - height)))
+        shift_top, shift_left = max(0, -top) + top, max(0, -left) + left
+        seen = padded(inside[:, None].float())[0, 0, shift_top:shift_top + side, shift_left:shift_left + side] > 0.5
+        target = padded(picture)[0, :, shift_top:shift_top + side, shift_left:shift_left + side].permute(1, 2, 0)[seen]
+        renderer = MeshRenderer()
+
+        def costs(deltas: torch.Tensor) -> torch.Tensor:
+            count = len(deltas)
+            lights = PointLights(fit.lights.position.expand(count, -1, -1), fit.lights.intensity.expand(count, -1, -1))
+            rendered = renderer(fit.relit, _moved(window, deltas, side), lights, side, side).image
+            return ((rendered.permute(0, 2, 3, 1)[:, seen] - target) ** 2).sum((1, 2))
+
+        centre = torch.zeros(6, dtype=picture.dtype)
+        best, step, renders = float(costs(centre[None])[0]), SHARPEN_STEPS[0], 1
+        moves = torch.cat([torch.eye(6), -torch.eye(6)]).to(picture.dtype)
+        while step >= SHARPEN_STEPS[1] and renders + len(moves) <= SHARPEN_RENDERS:
+            trials = centre + step * moves
+            trial_costs = costs(trials)
+            renders += len(moves)
+            pick = int(trial_costs.argmin())
+            if float(trial_costs[pick]) < best:
+                best, centre = float(trial_costs[pick]), trials[pick]
+            else:
+                step /= 2
+        return _moved(camera, centre, height)
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
