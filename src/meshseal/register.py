@@ -584,11 +584,12 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
         top, left = (top + bottom - side) // 2, (left + right - side) // 2
         fov, principal = crop_intrinsics(height, width, (left + side / 2, top + side / 2, side / 2), camera.fov_y)
         window = replace(camera, fov_y=fov, principal=principal)
-        padded = lambda x: F.pad(x, (max(0, -left), max(0, left + side - width), max(0, -top),  # noqa: E731
-                                     max(0, top + side - height)))
-        shift_top, shift_left = max(0, -top) + top, max(0, -left) + left
-        seen = padded(inside[:, None].float())[0, 0, shift_top:shift_top + side, shift_left:shift_left + side] > 0.5
-        target = padded(picture)[0, :, shift_top:shift_top + side, shift_left:shift_left + side].permute(1, 2, 0)[seen]
+        # The window may reach past the picture's edges: pad, then cut it out.
+        pad_left, pad_top = max(0, -left), max(0, -top)
+        cut = lambda x: F.pad(x, (pad_left, max(0, left + side - width), pad_top, max(0, top + side - height)))[  # noqa: E731
+            0, :, top + pad_top:top + pad_top + side, left + pad_left:left + pad_left + side]
+        seen = cut(inside[:, None].float())[0] > 0.5
+        target = cut(picture).permute(1, 2, 0)[seen]
         renderer = MeshRenderer()
 
         def costs(deltas: torch.Tensor) -> torch.Tensor:
@@ -609,7 +610,9 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
                 best, centre = float(trial_costs[pick]), trials[pick]
             else:
                 step /= 2
-        return _moved(camera, centre, height)
+        # `_moved`'s turn about the view axis and move along it are in pixels at the window's edge: the
+        # window's own camera carries them back, then the picture's intrinsics.
+        return replace(_moved(window, centre, side), fov_y=camera.fov_y, principal=camera.principal)
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
