@@ -438,7 +438,7 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     import meshseal.api as api
     from meshseal import payload
     from meshseal.api import Watermarker
-    from meshseal.register import Alternative, pose_error
+    from meshseal.register import Alternative
 
     model, message, original, marked = _original_and_marked_batches()
     marked.textures = [model.mark_texture(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
@@ -464,9 +464,9 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     assert torch.allclose(again.found.eye, cameras.eye)
     single = watermarker.decide([replace(again, tries=1)])
     assert decision.p_value == pytest.approx(min(1.0, 6 * single.p_value), rel=1e-9)
-    # Found at the registered camera (or its sharpened one): x3, no alternative tried.
+    # Found at the registered camera: x3 (three stages paid for), nothing else read.
     direct = watermarker.look_again(registered_at(seen["marked"], cameras, (Alternative(turned),)), original)
-    assert direct.tries == 3 and pose_error(original, cameras, direct.found, 256, 256) < 0.1
+    assert direct.tries == 3 and torch.allclose(direct.found.eye, cameras.eye)
     # An unmarked picture: no camera finds a mark; pooling keeps the first camera and no factor.
     clean = watermarker.look_again(registered_at(seen["clean"], turned, (Alternative(cameras),)), original)
     assert not watermarker.decide([clean]).detected and clean.tries == 3
