@@ -45,6 +45,7 @@ RETRY_KEEP = 12
 RETRY_ANGLE = 12.0  # ... at least this many degrees from each other and from the views refined first
 SHARPEN_STEPS = (0.2, 0.025)  # pixels: `sharpen`'s first and last step
 SHARPEN_RENDERS = 150  # ... and at most this many renders
+SHARPEN_WINDOW = 256  # ... of at most this many pixels a side around the object's centre
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -568,7 +569,8 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
     alignment cannot see that, and neither can image gradients (their Jacobian points elsewhere):
     this is a pattern search, each of the six coordinates of `_moved` by +-step in one batch of
     renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
-    most SHARPEN_RENDERS renders of the object's own window. Where it moves the camera to a worse
+    most SHARPEN_RENDERS renders of the object's own window (at most SHARPEN_WINDOW pixels a side: in
+    a large picture, the part around the object's centre). Where it moves the camera to a worse
     view, only the reading can tell: `api.Watermarker.look_again` reads both."""
     height, width = picture.shape[-2:]
     with torch.no_grad():
@@ -582,6 +584,11 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
         left, right = int(columns[0]) - 2, int(columns[-1]) + 3
         side = max(bottom - top, right - left)
         top, left = (top + bottom - side) // 2, (left + right - side) // 2
+        if side > SHARPEN_WINDOW:  # a large picture: its central part, so that the cost stays bounded
+            centre_row, centre_column = inside[0].nonzero().float().mean(0).round().long().tolist()
+            top = min(max(centre_row - SHARPEN_WINDOW // 2, top), top + side - SHARPEN_WINDOW)
+            left = min(max(centre_column - SHARPEN_WINDOW // 2, left), left + side - SHARPEN_WINDOW)
+            side = SHARPEN_WINDOW
         fov, principal = crop_intrinsics(height, width, (left + side / 2, top + side / 2, side / 2), camera.fov_y)
         window = replace(camera, fov_y=fov, principal=principal)
         # The window may reach past the picture's edges: pad, then cut it out.
