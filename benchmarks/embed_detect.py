@@ -6,22 +6,22 @@ relighting and reading, the original mesh prepared once), then registration (pic
 metadata): 256^2 pictures of the five textured fixtures from two seeded views each, one timed read a
 picture (`detect_registered_256_ms`: their median, what a user's picture costs), and the sphere's
 picture (`detect_registered_sphere_256_ms`: the worst case, a shape with the same silhouette from every
-side under a texture too fine to turn it by, so every retry and second look runs), then a batch of pictures read as `meshseal detect` reads a folder (pictures per
-second, one process), then the command line itself: the wall time of `meshseal detect PICTURE --mesh
-MESH` and of `meshseal embed MESH --views 0` in a fresh process (start-up included: what a user waits
-for the first result), and `meshseal detect FOLDER --mesh MESH --jsonl` on a folder of 64 saved 256^2
-pictures of the marked bunny with its default workers (one process per core): the rate at which its
-lines arrive between the first and the last (`folder_pictures_per_s`), and the same command with
-`--register` on 16 of them, one worker per core (`folder_registered_ms`: the time between lines, i.e.
-a registered picture's cost when a folder is checked; `detect_registered_256_ms` is one picture's
-latency in one process). References in the same run: a
-plain 512x512 bilinear resize + 3x3 blur in torch (what any image tool does to the texture), so the
-ratio says how far from free we are on this machine, and the wall time of a fresh `python -c "import
-torch, trimesh, numba"` (`import_floor_s`: the libraries' own start-up, which no command can undercut).
+side under a texture too fine to turn it by, so every retry and second look runs), then a batch of
+pictures read as `meshseal detect` reads a folder (pictures per second, one process), then the command
+line itself: the wall time of `meshseal detect PICTURE --mesh MESH` and of `meshseal embed MESH --views
+0` in a fresh process (start-up included: what a user waits for the first result), and `meshseal detect
+FOLDER --mesh MESH --jsonl` on a folder of 64 saved 256^2 pictures of the marked bunny with its default
+workers (one process per core): the rate at which its lines arrive between the first and the last
+(`folder_pictures_per_s`), and the same command with `--register` on 16 of them, one worker per core
+(`folder_registered_ms`: the time between lines, i.e. a registered picture's cost when a folder is
+checked). References in the same run: a plain 512x512 bilinear resize + 3x3 blur in torch (what any
+image tool does to the texture), so the ratio says how far from free we are on this machine, and the
+wall time of a fresh `python -c "import torch, trimesh, numba"` (`import_floor_s`: the libraries' own
+start-up, which no command can undercut).
 
 LAST line: embed_5k_512_ms=<float> detect_256_ms=<float> detect_registered_256_ms=<float>
-detect_registered_sphere_256_ms=<float> pictures_per_s=<float> cli_detect_s=<float> cli_embed_s=<float> folder_pictures_per_s=<float>
-import_floor_s=<float> folder_registered_ms=<float>
+detect_registered_sphere_256_ms=<float> pictures_per_s=<float> cli_detect_s=<float> cli_embed_s=<float>
+folder_pictures_per_s=<float> import_floor_s=<float> folder_registered_ms=<float>
 """
 
 from __future__ import annotations

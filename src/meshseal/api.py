@@ -414,8 +414,7 @@ class Watermarker:
         best, best_p = first, decision.p_value
 
         def under(camera, tries: int) -> tuple[_Reading, float]:
-            other = replace(first, evidence=self._evidence(original, picture, camera), found=camera,
-                            registration_iou=silhouette_iou(original, camera, mask), tries=tries)
+            other = replace(first, evidence=self._evidence(original, picture, camera), found=camera, tries=tries)
             return other, self.decide([other], key, expect).p_value
 
         camera = reading.found
@@ -436,7 +435,8 @@ class Watermarker:
             other, p_value = under(alternative.finish(), stages * len(alternatives))
             if p_value < best_p:
                 best, best_p = other, p_value
-        return best
+        # Only the kept camera's silhouette overlap is reported: the others are never rendered for it.
+        return best if best is first else replace(best, registration_iou=silhouette_iou(original, best.found, mask))
 
     def decide(self, readings: list[_Reading], key=None, expect=None) -> Detection:
         """The decision on the evidence of `read` (several readings: pooled, their evidence added)."""

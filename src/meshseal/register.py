@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from .framing import boxes_from_mask, crop_boxes
-from .render import (Cameras, MeshBatch, MeshRenderer, PointLights, fibonacci_directions, pixels_at,
+from .render import (Cameras, MeshBatch, MeshRenderer, fibonacci_directions, pixels_at,
                      relight_fragments)
 
 SEARCH_SIZE = 128  # render size of the candidate views and of the refinement
@@ -509,9 +509,7 @@ def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask:
     def residual(moved: Cameras, with_image: bool = False):
         """(B, M) for B cameras: every camera of `moved` renders in one batch; with `with_image`, also
         the band-passed renders (B, 3, H, W) and their rasterization."""
-        lights = PointLights(fit.lights.position.expand(len(moved), -1, -1),
-                             fit.lights.intensity.expand(len(moved), -1, -1))
-        rendered = renderer(fit.relit, moved, lights, height, width)
+        rendered = renderer(fit.relit, moved, fit.lights[[0] * len(moved)], height, width)
         banded = band(rendered.image)
         values = banded.permute(0, 2, 3, 1)[:, inside[0]].reshape(len(moved), -1) - target
         return (values, banded, rendered.fragments) if with_image else values
@@ -600,8 +598,7 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
         renderer = MeshRenderer()
 
         def costs(deltas: torch.Tensor) -> torch.Tensor:
-            count = len(deltas)
-            lights = PointLights(fit.lights.position.expand(count, -1, -1), fit.lights.intensity.expand(count, -1, -1))
+            lights = fit.lights[[0] * len(deltas)]  # the one fitted light for every trial camera
             rendered = renderer(fit.relit, _moved(window, deltas, side), lights, side, side).image
             return ((rendered.permute(0, 2, 3, 1)[:, seen] - target) ** 2).sum((1, 2))
 
