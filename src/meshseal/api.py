@@ -554,9 +554,10 @@ class Watermarker:
             else:
                 from .register import register_with_masks
 
+                guesses, recut = self._object_guesses(pixels, mask, alpha, original)
                 with torch.enable_grad():
-                    found = register_with_masks(original, tensor[0], self._object_guesses(pixels, mask, alpha, original),
-                                                background_tensor[0], fov_y=fov_y)
+                    found = register_with_masks(original, tensor[0], guesses, background_tensor[0], fov_y=fov_y,
+                                                recut=recut)
                 box = found.box[None]
                 evidence = self._evidence(original, tensor.clamp(0, 1), found.camera)
                 source, iou, camera = "registered", found.iou, found.camera
@@ -565,18 +566,20 @@ class Watermarker:
                 return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera, second_look=second_look)
         return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera)
 
-    def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original) -> list[torch.Tensor]:
-        """The object's pixels as registration should try them: the plain-background `mask`, and where
-        the background is busy (`segment.busy_background`) a cut guided by the original's colours too,
-        first, unless the two agree."""
-        from .segment import GUESSES_AGREE, busy_background, guided_object_mask, mask_iou
+    def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original):
+        """The object's pixels as registration should try them, and how to cut again from a registered
+        silhouette (None where not needed): the plain-background `mask`, and where the background is
+        busy (`segment.busy_background`) a cut guided by the original's colours too, first, unless the
+        two agree, and `segment.recut` of the picture."""
+        from .segment import GUESSES_AGREE, busy_background, guided_object_mask, mask_iou, recut
 
-        guesses = [mask]
+        guesses, again = [mask], None
         if alpha is None and busy_background(pixels):
             guided = guided_object_mask(pixels, original)
             if int(guided.sum()) >= MIN_OBJECT_PIXELS and mask_iou(guided, mask) < GUESSES_AGREE:
                 guesses.insert(0, guided)
-        return [torch.from_numpy(np.ascontiguousarray(g)).to(self.device) for g in guesses]
+            again = lambda silhouette: recut(pixels, silhouette)  # noqa: E731
+        return [torch.from_numpy(np.ascontiguousarray(g)).to(self.device) for g in guesses], again
 
     def _evidence(self, original, picture: torch.Tensor, camera) -> torch.Tensor:
         """Matched-filter cell sums (spread models) or decoder logits of one picture (1, 3, H, W)."""

@@ -38,6 +38,9 @@ PICK_MARGIN = 0.7  # another candidate replaces the best-scored one only if its 
 PICK_IOU_SLACK = 0.1  # ... and only if its refined silhouette's IoU is at most this much below the best one's
 TEXTURE_IOU_SLACK = 0.04  # the texture stage's camera is kept only if its silhouette's IoU is at most this much below the start's
 FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-pixel one left this share of the misfit or more
+RECUT_ROUNDS = 2  # `register_with_masks`: at most this many guesses in a row cut again from a registered silhouette
+RECUT_BELOW_IOU = 0.9  # ... only where the registered silhouette's IoU with its own guess is under this (a mask it disagrees with)
+MIN_RECUT_PIXELS = 64  # ... a cut smaller than this is not registered
 ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (registered: 0.01-0.03; a wrong view: about 2)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
 RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
@@ -790,21 +793,43 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
 
 def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,
-                        fov_y: float = FOV) -> Registration:
+                        fov_y: float = FOV, recut=None) -> Registration:
     """`register` with each of several guesses of the object's pixels (H, W) in turn (e.g. a busy
     background's colour-guided cut, then the plain-background threshold, when they disagree), keeping
     the camera under which the original's texture explains the picture best (`texture_misfit` over
     the registered silhouette's own interior, so no guess judges itself). A guess whose camera
-    explains it well (misfit under ACCEPT_MISFIT) ends the search."""
-    if len(masks) == 1:
+    explains it well (misfit under ACCEPT_MISFIT) ends the search. `recut` (the best camera's
+    silhouette (H, W) bool -> a new guess, e.g. `segment.recut`), where given, makes a new guess from
+    each guess's registration that the texture does not confirm and whose silhouette disagrees with
+    the guess (IoU under RECUT_BELOW_IOU: on a plain background whose frame cuts the object off, a
+    registration can be right yet over ACCEPT_MISFIT), up to RECUT_ROUNDS in a row while they fit
+    better."""
+    if len(masks) == 1 and recut is None:
         return register(mesh, picture, masks[0], background, fov_y=fov_y)
     everywhere = torch.ones_like(masks[0][None], dtype=picture.dtype)
-    best, best_misfit = None, math.inf
-    for mask in masks:
+    best, best_misfit, cut_from = None, math.inf, []
+
+    def attempt(mask: torch.Tensor) -> bool:
+        """Register on `mask`, keep it if it fits best; whether it fit better than the best before."""
+        nonlocal best, best_misfit
         found = register(mesh, picture, mask, background, fov_y=fov_y)
         misfit = texture_misfit(mesh, found.camera, picture[None].clamp(0, 1), everywhere, PICK_SIGMAS)
         if best is None or misfit < best_misfit:
             best, best_misfit = found, misfit
+            return True
+        return False
+
+    for mask in masks:
+        attempt(mask)
+        for _ in range(RECUT_ROUNDS if recut is not None else 0):
+            if best_misfit < ACCEPT_MISFIT or best.iou >= RECUT_BELOW_IOU or any(best is done for done in cut_from):
+                break
+            cut_from.append(best)
+            with torch.no_grad():
+                _, cover = _rasterized(mesh, best.camera, *picture.shape[-2:])
+            guess = torch.as_tensor(recut(cover[0].cpu().numpy() > 0.5), device=picture.device)
+            if int(guess.sum()) < MIN_RECUT_PIXELS or not attempt(guess):
+                break
         if best_misfit < ACCEPT_MISFIT:
             break
     return best
