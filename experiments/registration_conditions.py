@@ -1,7 +1,7 @@
 """Reading pictures users actually have, without metadata: the issue's list of conditions, each
 measured on the same test meshes.
 
-For the first N test meshes (one seeded view each, the paper's camera and light ranges) the shipped
+For the first N test meshes (or train meshes, `--split train`) (one seeded view each, the paper's camera and light ranges) the shipped
 default marks the texture with an error-corrected ID; the picture is rendered by our renderer and read
 as `meshseal detect --mesh` reads it (object found from the background, camera registered), under:
 plain (a plain random background, 256^2: the reference), gradient (a linear ramp between two random
@@ -13,7 +13,7 @@ error, bit accuracy with the registered and with the true camera, detection rate
 seconds per picture. A refused picture counts as read at chance.
 
     python experiments/registration_conditions.py --data data --meshes 20
-        [--conditions plain gradient busy cut 512 1024 jpeg75]
+        [--conditions plain gradient busy cut 512 1024 jpeg75] [--split train]
 """
 
 from __future__ import annotations
@@ -72,11 +72,12 @@ def main() -> None:
     parser.add_argument("--meshes", type=int, default=20)
     parser.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--split", default="test", choices=("train", "test"), help="the meshes' split (default test)")
     parser.add_argument("--jsonl", type=Path, default=None, help="one JSON line per picture")
     args = parser.parse_args()
     wm = meshseal.load()
     model = wm.model
-    dataset = MeshDataset(args.data, "test")
+    dataset = MeshDataset(args.data, args.split)
     textures = sorted((args.data / "textures").glob("*.png"))
     renderer = MeshRenderer()
     rows = {condition: [] for condition in args.conditions}
