@@ -567,18 +567,19 @@ class Watermarker:
         return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera)
 
     def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original):
-        """The object's pixels as registration should try them, and how to cut again from a registered
-        silhouette (None where not needed): the plain-background `mask`, and where the background is
-        busy (`segment.busy_background`) a cut guided by the original's colours too, first, unless the
-        two agree, and `segment.recut` of the picture."""
+        """The object's pixels as registration should try them, and how to cut them again from a
+        registered silhouette (None where the picture's alpha channel gives them): the plain-background
+        `mask`, and where the background is busy (`segment.busy_background`) a cut guided by the
+        original's colours too, first, unless the two agree; `segment.recut` of the picture (a dark
+        object on a dark backdrop loses parts of it to the plain-background mask, too)."""
         from .segment import GUESSES_AGREE, busy_background, guided_object_mask, mask_iou, recut
 
-        guesses, again = [mask], None
+        guesses = [mask]
         if alpha is None and busy_background(pixels):
             guided = guided_object_mask(pixels, original)
             if int(guided.sum()) >= MIN_OBJECT_PIXELS and mask_iou(guided, mask) < GUESSES_AGREE:
                 guesses.insert(0, guided)
-            again = lambda silhouette: recut(pixels, silhouette)  # noqa: E731
+        again = None if alpha is not None else (lambda silhouette: recut(pixels, silhouette))
         return [torch.from_numpy(np.ascontiguousarray(g)).to(self.device) for g in guesses], again
 
     def _evidence(self, original, picture: torch.Tensor, camera) -> torch.Tensor:
