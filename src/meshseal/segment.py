@@ -9,6 +9,7 @@ cuts along its edges. Registration then runs on the mask as on a plain backgroun
 (`register.register_with_masks` decides between this guess and the plain-background one). Where neither
 registers, the silhouette of the best camera found seeds a second cut (`recut`): even a camera several
 pixels off, or a wrong view of a like shape, says where the object is far better than colours alone.
+The same second cut mends a plain background's mask where a dark object on a dark backdrop lost parts.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ BINS = 16  # colour histogram bins per channel
 CUT_SIZE = 384  # GrabCut runs on a copy whose longer side is at most this many pixels
 COLOUR_VIEWS = 16  # views of the original whose pixels make its colour histogram
 KEEP_AREA = 0.9  # the largest connected parts of a cut holding this share of its area are kept
-RECUT_BAND = 8  # pixels (at the picture's size) around a registered silhouette that `recut` may add
+RECUT_BAND = 8  # pixels around a registered silhouette that `recut` may add (in a 256-pixel picture; scaled with its size)
 
 
 def busy_background(image: np.ndarray, threshold: float = 0.03) -> bool:
@@ -135,13 +136,13 @@ def guided_object_mask(image: np.ndarray, mesh) -> np.ndarray:
 def recut(image: np.ndarray, silhouette: np.ndarray) -> np.ndarray:
     """The object's pixels (H, W) bool in a picture (H, W, 3) in [0, 1], cut again by GrabCut seeded by
     the `silhouette` (H, W) bool of a registered camera: probably object inside it, probably background
-    in a band of RECUT_BAND pixels around it, background beyond. Where a first cut took in a patch of
+    in a band of RECUT_BAND pixels around it (at 256^2), background beyond. Where a first cut took in a patch of
     the background with the object's colours (a dark square beside a dark object) or left out parts
     of it, the camera registered on that cut is off, but its silhouette lies mostly on the object."""
     import cv2
     from scipy import ndimage
 
-    band = ndimage.binary_dilation(silhouette, iterations=RECUT_BAND)
+    band = ndimage.binary_dilation(silhouette, iterations=max(1, round(RECUT_BAND * max(silhouette.shape) / 256)))
     seeds = np.full(silhouette.shape, cv2.GC_BGD, dtype=np.uint8)
     seeds[band] = cv2.GC_PR_BGD
     seeds[silhouette] = cv2.GC_PR_FGD
