@@ -41,7 +41,6 @@ FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-
 RECUT_ROUNDS = 2  # `register_with_masks`: at most this many guesses in a row cut again from a registered silhouette
 RECUT_BELOW_IOU = 0.9  # ... only where the registered silhouette's IoU with its own guess is under this (a mask it disagrees with)
 MIN_RECUT_PIXELS = 64  # ... a cut smaller than this is not registered
-RECUT_SAME_IOU = 0.95  # ... nor one that overlaps the guess it came from at least this much (the same mask again)
 ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (registered: 0.01-0.03; a wrong view: about 2)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
 RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
@@ -804,19 +803,20 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
     each guess's registration that the texture does not confirm and whose silhouette disagrees with
     the guess (IoU under RECUT_BELOW_IOU: on a plain background whose frame cuts the object off, a
     registration can be right yet over ACCEPT_MISFIT), up to RECUT_ROUNDS in a row while they fit
-    better; a new guess that is the old one again (IoU RECUT_SAME_IOU) is not registered."""
+    better. A new cut much like its guess is registered all the same: registration on a slightly
+    different mask can land on a better view."""
     if len(masks) == 1 and recut is None:
         return register(mesh, picture, masks[0], background, fov_y=fov_y)
     everywhere = torch.ones_like(masks[0][None], dtype=picture.dtype)
-    best, best_misfit, best_mask, cut_from = None, math.inf, None, []
+    best, best_misfit, cut_from = None, math.inf, []
 
     def attempt(mask: torch.Tensor) -> bool:
         """Register on `mask`, keep it if it fits best; whether it fit better than the best before."""
-        nonlocal best, best_misfit, best_mask
+        nonlocal best, best_misfit
         found = register(mesh, picture, mask, background, fov_y=fov_y)
         misfit = texture_misfit(mesh, found.camera, picture[None].clamp(0, 1), everywhere, PICK_SIGMAS)
         if best is None or misfit < best_misfit:
-            best, best_misfit, best_mask = found, misfit, mask
+            best, best_misfit = found, misfit
             return True
         return False
 
@@ -829,7 +829,7 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
             with torch.no_grad():
                 _, cover = _rasterized(mesh, best.camera, *picture.shape[-2:])
             guess = torch.as_tensor(recut(cover[0].cpu().numpy() > 0.5), device=picture.device)
-            if int(guess.sum()) < MIN_RECUT_PIXELS or float(_iou(guess, best_mask)) >= RECUT_SAME_IOU or not attempt(guess):
+            if int(guess.sum()) < MIN_RECUT_PIXELS or not attempt(guess):
                 break
         if best_misfit < ACCEPT_MISFIT:
             break
