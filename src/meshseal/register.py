@@ -805,27 +805,30 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
     registration can be right yet over ACCEPT_MISFIT), up to RECUT_ROUNDS in a row while they fit
     better. A new cut much like its guess is registered all the same: registration on a slightly
     different mask can land on a better view."""
-    if len(masks) == 1 and recut is None:
-        return register(mesh, picture, masks[0], background, fov_y=fov_y)
+    first = register(mesh, picture, masks[0], background, fov_y=fov_y)
+    if len(masks) == 1 and (recut is None or first.iou >= RECUT_BELOW_IOU):
+        return first  # nothing to compare it with: its misfit is not needed
     everywhere = torch.ones_like(masks[0][None], dtype=picture.dtype)
-    best, best_misfit, cut_from = None, math.inf, []
+    best, best_misfit, cut_from = None, math.inf, None
 
-    def attempt(mask: torch.Tensor) -> bool:
-        """Register on `mask`, keep it if it fits best; whether it fit better than the best before."""
+    def attempt(mask: torch.Tensor, found: Registration | None = None) -> bool:
+        """Register on `mask` (unless `found` already is), keep it if it fits best; whether it fit
+        better than the best before."""
         nonlocal best, best_misfit
-        found = register(mesh, picture, mask, background, fov_y=fov_y)
+        found = found if found is not None else register(mesh, picture, mask, background, fov_y=fov_y)
         misfit = texture_misfit(mesh, found.camera, picture[None].clamp(0, 1), everywhere, PICK_SIGMAS)
         if best is None or misfit < best_misfit:
             best, best_misfit = found, misfit
             return True
         return False
 
-    for mask in masks:
-        attempt(mask)
+    for index, mask in enumerate(masks):
+        attempt(mask, first if index == 0 else None)
         for _ in range(RECUT_ROUNDS if recut is not None else 0):
-            if best_misfit < ACCEPT_MISFIT or best.iou >= RECUT_BELOW_IOU or any(best is done for done in cut_from):
+            # `best` changes only when a guess fits better, so the last camera cut from is the only repeat.
+            if best_misfit < ACCEPT_MISFIT or best.iou >= RECUT_BELOW_IOU or best is cut_from:
                 break
-            cut_from.append(best)
+            cut_from = best
             with torch.no_grad():
                 _, cover = _rasterized(mesh, best.camera, *picture.shape[-2:])
             guess = torch.as_tensor(recut(cover[0].cpu().numpy() > 0.5), device=picture.device)
