@@ -213,6 +213,7 @@ class Watermarker:
         self.model = model.eval()
         self.name = name
         self._grids_of: tuple | None = None  # (prepared original, encoder, its grids_to_read)
+        self._cpu_of: tuple | None = None  # (prepared original, its copy on the CPU for registration)
 
     @property
     def n_bits(self) -> int:
@@ -413,13 +414,16 @@ class Watermarker:
         hinted = decision.p_value <= LOOK_AGAIN_BELOW
         best, best_p = first, decision.p_value
 
+        on_cpu, on_device = self._on_cpu(original), picture.to(self.device)
+
         def under(camera, tries: int) -> tuple[_Reading, float]:
-            other = replace(first, evidence=self._evidence(original, picture, camera), found=camera, tries=tries)
+            camera = camera.to(self.device)
+            other = replace(first, evidence=self._evidence(original, on_device, camera), found=camera, tries=tries)
             return other, self.decide([other], key, expect).p_value
 
-        camera = reading.found
+        camera = reading.found.to("cpu")
         for _ in range(SHARPEN_ROUNDS):  # each round refits the light at the camera the last one found
-            camera = sharpen(original, camera, picture, mask[None].float())
+            camera = sharpen(on_cpu, camera, picture, mask[None].float())
             sharpened, p_value = under(camera, stages * SHARPEN_ROUNDS)
             if p_value < best_p:
                 best, best_p = sharpened, p_value
@@ -429,14 +433,14 @@ class Watermarker:
             if payload.detected(best_p):
                 break  # every stage is paid for, tried or not
             if not (hinted or alternative.finished):
-                rough = replace(first, evidence=self._evidence(original, picture, alternative.rough()))
+                rough = replace(first, evidence=self._evidence(original, on_device, alternative.rough().to(self.device)))
                 if self.decide([rough], key, expect).p_value > LOOK_AGAIN_BELOW:
                     continue
             other, p_value = under(alternative.finish(), stages * len(alternatives))
             if p_value < best_p:
                 best, best_p = other, p_value
         # Only the kept camera's silhouette overlap is reported: the others are never rendered for it.
-        return best if best is first else replace(best, registration_iou=silhouette_iou(original, best.found, mask))
+        return best if best is first else replace(best, registration_iou=silhouette_iou(on_cpu, best.found.to("cpu"), mask))
 
     def decide(self, readings: list[_Reading], key=None, expect=None) -> Detection:
         """The decision on the evidence of `read` (several readings: pooled, their evidence added)."""
@@ -556,13 +560,12 @@ class Watermarker:
 
                 guesses, recut = self._object_guesses(pixels, mask, alpha, original)
                 with torch.enable_grad():
-                    found = register_with_masks(original, tensor[0], guesses, background_tensor[0], fov_y=fov_y,
-                                                recut=recut)
+                    found = register_with_masks(self._on_cpu(original), tensor[0].cpu(), guesses,
+                                                background_tensor[0].cpu(), fov_y=fov_y, recut=recut)
                 box = found.box[None]
-                evidence = self._evidence(original, tensor.clamp(0, 1), found.camera)
-                source, iou, camera = "registered", found.iou, found.camera
-                second_look = (tensor.clamp(0, 1), torch.from_numpy(np.ascontiguousarray(mask)).to(self.device),
-                               found.alternatives)
+                source, iou, camera = "registered", found.iou, found.camera.to(self.device)
+                evidence = self._evidence(original, tensor.clamp(0, 1), camera)
+                second_look = (tensor.clamp(0, 1).cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
                 return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera, second_look=second_look)
         return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera)
 
@@ -576,11 +579,20 @@ class Watermarker:
 
         guesses = [mask]
         if alpha is None and busy_background(pixels):
-            guided = guided_object_mask(pixels, original)
+            guided = guided_object_mask(pixels, self._on_cpu(original))
             if int(guided.sum()) >= MIN_OBJECT_PIXELS and mask_iou(guided, mask) < GUESSES_AGREE:
                 guesses.insert(0, guided)
         again = None if alpha is not None else (lambda silhouette: recut(pixels, silhouette))
-        return [torch.from_numpy(np.ascontiguousarray(g)).to(self.device) for g in guesses], again
+        return [torch.from_numpy(np.ascontiguousarray(g)) for g in guesses], again
+
+    def _on_cpu(self, original):
+        """The prepared original on the CPU, where registration runs whatever the model's device (its
+        many small Gauss-Newton steps are written and tested for the CPU); kept for the next picture."""
+        if original.positions.device.type == "cpu":
+            return original
+        if self._cpu_of is None or self._cpu_of[0] is not original:
+            self._cpu_of = (original, original.to("cpu"))
+        return self._cpu_of[1]
 
     def _evidence(self, original, picture: torch.Tensor, camera) -> torch.Tensor:
         """Matched-filter cell sums (spread models) or decoder logits of one picture (1, 3, H, W)."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Protocol
 
 import torch
@@ -56,6 +56,15 @@ class MeshBatch:
                    torch.stack([m.diffuse for m in materials]).to(device),
                    torch.stack([m.specular for m in materials]).to(device),
                    torch.tensor([m.shininess for m in materials], device=device))
+
+    def to(self, device) -> "MeshBatch":
+        """This batch with every tensor on `device`."""
+        def move(value):
+            if isinstance(value, list):
+                return [move(v) for v in value]
+            return value.to(device) if isinstance(value, torch.Tensor) else value
+
+        return type(self)(**{f.name: move(getattr(self, f.name)) for f in fields(self)})
 
     @classmethod
     def from_tensors(cls, positions: torch.Tensor, normals: torch.Tensor, uvs: torch.Tensor,
