@@ -88,6 +88,27 @@ def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, ca
     assert 39.8 < report["psnr_texture_shown"] < 40.2 and "psnr_object" not in report
 
 
+def test_embed_lowers_the_strength_to_keep_the_marks_flip_within_the_budget(tmp_path, capsys):
+    bits = "01" * 32
+    common = [str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", bits, "--views", "1", "--json"]
+    assert main(["embed", *common, "--max-flip", "0"]) == 0  # no budget: strength 1 as given
+    loud = json.loads(capsys.readouterr().out)
+    budget = round(loud["flip_object"] * 0.7, 4)  # below what strength 1 shows
+    assert main(["embed", *common, "--max-flip", str(budget)]) == 0
+    quiet = json.loads(capsys.readouterr().out)
+    assert quiet["flip_object"] <= budget < loud["flip_object"] and quiet["max_flip"] == budget
+    assert 0.5 <= quiet["strength"] < 1.0 and quiet["strength_asked"] == 1.0
+    assert quiet["psnr_texture_shown"] > loud["psnr_texture_shown"] + 1.0  # quieter by the figures too
+    assert main(["embed", *common, "--strength", "2"]) == 0  # a strength given is used as is
+    louder = json.loads(capsys.readouterr().out)
+    assert louder["strength"] == 2.0 and louder["max_flip"] is None and louder["flip_object"] > loud["flip_object"]
+    assert main(["embed", *common, "--max-flip", "0.001"]) == 0  # out of reach: the floor, with a warning
+    floored = capsys.readouterr()
+    assert json.loads(floored.out)["strength"] == 0.5 and "above the budget" in floored.err
+    assert main(["embed", *common[:-3], "--views", "0", "--max-flip", "0.03"]) == 2  # nothing to measure it in
+    assert main(["embed", *common, "--max-flip", "2"]) == 2
+
+
 def test_texels_used_are_the_ones_faces_cover_wrapped_with_their_neighbours():
     quad = torch.tensor([[0.0, 0.0], [0.5, 0.0], [0.5, 1.0], [0.0, 1.0]])  # the left half of the UV square
     used = texels_used(quad, torch.tensor([[0, 1, 2], [0, 2, 3]]), 16, 16)

@@ -156,7 +156,9 @@ def main() -> int:
                      f"{m['psnr_render']:.2f} |")
     if shipped is not None:
         lines += ["", f"The table marks and reads every mesh on the model's own grid. As `meshseal embed` marks each mesh "
-                  f"(its cell grid sized to the texture's footprint) and `meshseal detect` reads a picture whose camera its "
+                  f"(its cell grid sized to the texture's footprint; within its FLIP budget {shipped['max_flip']:g}: "
+                  f"{shipped['strength_lowered']:.1%} of the meshes marked at a lower strength, mean strength "
+                  f"{shipped['strength_mean']:.3f}) and `meshseal detect` reads a picture whose camera its "
                   f"metadata gives, the same {shipped['n_meshes']} meshes x {shipped['n_views']} seed views: bit accuracy "
                   f"**{shipped['bit_acc_known_camera']:.4f}**, detected at FPR {shipped['fpr_threshold']:g} "
                   f"{shipped['tpr_known_camera']:.3f}, exact message {shipped['exact_message_known_camera']:.3f}, "

@@ -13,6 +13,7 @@ import torch
 from .errors import MeshsealError
 from .framing import box_from_points, boxes_from_mask, crop_boxes, object_mask
 from .mesh import Mesh, normalize, to_z_up
+from .metrics import BUDGET_VIEWS, MAX_FLIP
 from .models import WatermarkModel
 from .models.io import load_model, read_metadata
 from .models.spread import palette_share, texels_used
@@ -226,7 +227,7 @@ class Watermarker:
     # ------------------------------------------------------------ embed
     @torch.no_grad()
     def embed(self, mesh: Mesh, message=None, *, bits=None, key: str | bytes | None = None,
-              strength: float = 1.0) -> Mesh:
+              strength: float = 1.0, warn: bool = True) -> Mesh:
         """A copy of `mesh` carrying `message` (text, an int ID or a `payload.Message`; error-corrected
         and keyed, see `payload`) or raw `bits` ('0101...' or a sequence of 0/1 of the model's length,
         no error correction) in its textures (and normals/uvs with a vertex encoder). `key` (None: the
@@ -236,7 +237,8 @@ class Watermarker:
         texture) charts of their own (`layout`: added vertices and a taller texture, rendered as
         before). Learned encoders mark textures of any size at the model's working resolution and
         upsample the residual; spread-spectrum models mark at full resolution, `strength` times their
-        default amplitude (2: 6 dB louder and more robust; 0.5: quieter).
+        default amplitude (2: 6 dB louder and more robust; 0.5: quieter). `warn`: print warnings about
+        the mesh (a palette texture, no texture) to stderr.
         """
         from . import payload
 
@@ -258,7 +260,7 @@ class Watermarker:
             marked = self.layout(marked, note=True)
             grid = self.mark_grid(marked)
             palette = palette_share(marked.positions, _textured_faces(marked), marked.uvs)
-            if palette >= PALETTE_WARNING:
+            if palette >= PALETTE_WARNING and warn:
                 print(f"meshseal: warning: {palette:.0%} of the textured surface has faces without UV area (the "
                       "texture used as a colour palette) and could not be given charts (a tiled texture, or vertices "
                       "shared with another material): the mark has little room there and may read poorly",
@@ -277,7 +279,7 @@ class Watermarker:
             where = f"{mesh.source.path}: " if mesh.source is not None else ""
             raise MeshsealError(f"{where}the mesh has no texture with UVs to carry the watermark, and this "
                                 f"model only marks textures")
-        elif encoder.texture_encoder is not None:
+        elif encoder.texture_encoder is not None and warn:
             print("meshseal: warning: no texture with UVs: only the vertex normals carry the mark", file=sys.stderr)
         if encoder.vertex_encoder is not None:
             rotation = _Z_UP if mesh.up_axis == "y" else torch.eye(3)
@@ -290,6 +292,34 @@ class Watermarker:
             if marked.uvs is not None:
                 marked.uvs = new_uvs[0].cpu()
         return marked
+
+    def embed_within(self, mesh: Mesh, message=None, *, bits=None, key: str | bytes | None = None,
+                     strength: float = 1.0, max_flip: float = MAX_FLIP, views: int = BUDGET_VIEWS) -> tuple[Mesh, float]:
+        """`embed`, then the strength lowered until the mark's mean FLIP over the object's pixels, in
+        renders from `views` seeded views (256^2, our renderer: what `meshseal embed` reports), is at
+        most `max_flip`: a visibility budget on top of the texture PSNR the strength sets (a texture
+        minified in renders, such as a tiled brick pattern, can show a mark of 40 dB more than most).
+        Never below `metrics.MIN_STRENGTH` (a warning says when the budget is not met). Returns the
+        marked mesh and the strength used."""
+        from .metrics import MIN_STRENGTH, render_pair, strength_within, visibility
+
+        if not 0.0 < max_flip <= 1.0:
+            raise MeshsealError(f"max_flip must be in (0, 1], got {max_flip}")
+        if views < 1:
+            raise MeshsealError("a FLIP budget needs at least one view to measure it in")
+        if not self.calibrated:
+            raise MeshsealError("a FLIP budget is for spread-spectrum models (their strength scales the mark)")
+
+        def mark(at: float) -> tuple[Mesh, float]:
+            marked = self.embed(mesh, message, bits=bits, key=key, strength=at, warn=at == strength)
+            return marked, visibility(*render_pair(mesh, marked, views))["flip_object"]
+
+        marked, strength, flip = strength_within(mark, strength, max_flip)
+        if flip > max_flip:
+            floor = f" (the budget lowers the strength no further than {MIN_STRENGTH})" if strength <= MIN_STRENGTH else ""
+            print(f"meshseal: warning: the mark's FLIP is {flip:.4f} at strength {strength:.3g}, above the budget "
+                  f"{max_flip}{floor}", file=sys.stderr)
+        return marked, strength
 
     def _mark_surface(self, mesh: Mesh, marked: Mesh, message: torch.Tensor, strength: float) -> None:
         """Each texture of `marked` (a copy of `mesh`) carrying a surface mark: its texels traced to the

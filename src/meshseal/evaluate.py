@@ -16,7 +16,7 @@ import torch
 from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
-from .metrics import shown_texture_psnr, visibility
+from .metrics import BUDGET_VIEWS, MAX_FLIP, render_pair, shown_texture_psnr, strength_within, visibility
 from .models import WatermarkModel
 from .pipeline import batch_mark_grid, batch_texels_used, charted_item, run_pass, unpadded
 from .render import MeshRenderer
@@ -80,7 +80,8 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
 
 
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
-                        size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True) -> dict:
+                        size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
+                        max_flip: float | None = MAX_FLIP) -> dict:
     """Informed models end to end, as `meshseal detect --register` runs: each test mesh is watermarked
     (with an error-corrected 32-bit ID when the model has a payload schema, else random raw bits),
     rendered `views` times (size x size 8-bit pictures, random views and lights from `sampler`'s
@@ -90,7 +91,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     pose error, and for calibrated models the detection rate at the FPR threshold (TPR) and the exact-
     message rate, per picture and, with several views, pooled over each mesh's pictures. Slow.
     `register` False skips registration: the camera-known figures alone, as `meshseal detect` reads
-    pictures with camera metadata (fast enough for the whole split)."""
+    pictures with camera metadata (fast enough for the whole split). Calibrated models mark each mesh
+    under `meshseal embed`'s FLIP budget `max_flip` (its 4 seed views; None: strength 1 throughout) and
+    report the mean strength used and the share of meshes whose strength the budget lowered."""
     from . import payload
     from .api import PALETTE_WARNING, Watermarker
     from .models.spread import palette_share
@@ -124,8 +127,18 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         with torch.no_grad():
             if watermarker.calibrated:
                 normals_marked, uvs_marked = normals, uvs
-                texture_marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch),
-                                                    batch_texels_used(batch))  # as `meshseal embed` marks it
+                grid, used = batch_mark_grid(model, batch), batch_texels_used(batch)
+                unmarked = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
+
+                def mark(at: float):
+                    marked_texture = model.mark_texture(texture, message, at, payload.key_seed(None), grid, used)
+                    if max_flip is None:
+                        return marked_texture, 0.0
+                    seen_marked = MeshBatch.from_tensors(positions, normals, uvs, faces, marked_texture)
+                    return marked_texture, visibility(*render_pair(unmarked, seen_marked, BUDGET_VIEWS))["flip_object"]
+
+                # as `meshseal embed` marks it: within its FLIP budget
+                texture_marked, strength, _ = strength_within(mark, 1.0, max_flip or 1.0)
             else:
                 normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
             cameras, lights = sample_views(views, sampler, generator)
@@ -161,7 +174,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "exact": found is not None and found.message == identity,
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
-            rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "flip_object": seen["flip_object"]})
+            rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "flip_object": seen["flip_object"],
+                               "strength": strength if watermarker.calibrated else None})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
@@ -184,6 +198,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                 "max": _finite(pose[pose.isfinite()].max()) if bool(pose.isfinite().any()) else None},
               "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size,
               "n_unreadable": sum(r["unreadable"] for r in rows)}
+    if watermarker.calibrated and max_flip is not None:
+        result |= {"max_flip": max_flip, "strength_mean": mean("strength"),
+                   "strength_lowered": float(np.mean([r["strength"] < 1.0 for r in rows]))}
     if coded:
         result |= {"tpr": mean("detected"), "exact_message": mean("exact"), "tpr_known_camera": mean("detected_known"),
                    "exact_message_known_camera": mean("exact_known"), "fpr_threshold": payload.FPR}
@@ -199,7 +216,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
-            "psnr_object", "flip_object",
+            "psnr_object", "flip_object", "max_flip", "strength_mean", "strength_lowered",
             "seconds_per_picture", "n_meshes", "n_views", "size")}
     return result
 

@@ -23,9 +23,14 @@ def register(subparsers) -> None:
     what.add_argument("--bits", help="raw bits to hide, no error correction (research): 0/1 of the model's length")
     _key_argument(embed)
     embed.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
-    embed.add_argument("--strength", type=float, default=1.0,
+    embed.add_argument("--strength", type=float, default=None,
                        help="spread-spectrum models: mark amplitude relative to the default (2: 6 dB louder and "
-                            "more robust, 0.5: 6 dB quieter; default 1)")
+                            "more robust, 0.5: 6 dB quieter; default 1, lowered where the FLIP budget asks; given, "
+                            "it is used as is unless --max-flip is given too)")
+    embed.add_argument("--max-flip", type=_budget, default=None,
+                       help="spread-spectrum models: lower the strength until the mark's mean FLIP over the object "
+                            "in the report's renders is at most this (default 0.03; none by default when --strength "
+                            "is given or --views is 0; 0: no budget)")
     embed.add_argument("--views", type=positive_int(64, minimum=0), default=4,
                        help="views for the visibility figures (default 4; 0: none, faster)")
     embed.add_argument("--preview", type=Path, default=None,
@@ -80,6 +85,9 @@ def register(subparsers) -> None:
     evaluate.add_argument("--register", action="store_true",
                           help="informed models: detect as `meshseal detect --register` does (--views pictures per "
                                "mesh without metadata, camera found by registration, also pooled; slow)")
+    evaluate.add_argument("--max-flip", type=_budget, default=None,
+                          help="with --register, spread-spectrum models: mark each mesh under this FLIP budget, as "
+                               "`meshseal embed` does (default 0.03; 0: strength 1 throughout)")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(func=run_eval)
 
@@ -142,24 +150,14 @@ def _asset_id(text: str) -> int:
     return value
 
 
-def _render_pair(original, marked, views: int, size: int = 256):
-    """Render both meshes from the same seeded views (canonical frame) -> images (B, 3, H, W) each and
-    the object's interior pixels (B, H, W)."""
-    import torch
-
-    from ..mesh import normalize, to_z_up
-    from ..pipeline import sample_views
-    from ..render import MeshBatch, MeshRenderer
-
-    cameras, lights = sample_views(views, "seed", torch.Generator().manual_seed(0))
-    renderer = MeshRenderer()
-    images = []
-    for mesh in (original, marked):
-        canonical = normalize(to_z_up(mesh))
-        with torch.no_grad():
-            out = renderer(MeshBatch.from_mesh(canonical), cameras, lights, size, size)
-        images.append(out.image)
-    return images[0], images[1], out.rgba[..., 3] > 0.999
+def _budget(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"a FLIP budget is between 0 and 1, got {text}")
+    return value
 
 
 def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
@@ -170,7 +168,7 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
     import torch
 
     from ..losses import normal_angle_deg, psnr, ssim
-    from ..metrics import shown_texture_psnr, visibility
+    from ..metrics import render_pair, shown_texture_psnr, visibility
     from ..models.spread import resampled_like, texels_used
 
     texture_psnr, shown_psnr, shifts = [], [], []
@@ -197,7 +195,7 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
     }
     if views == 0:  # no renders: the file figures only
         return report, None
-    render_a, render_b, inside = _render_pair(original, marked, views)
+    render_a, render_b, inside = render_pair(original, marked, views)
     seen = visibility(render_a, render_b, inside)
     report |= {
         "psnr_object": round(seen["psnr_object"], 3),
@@ -238,6 +236,7 @@ def write_preview(path: Path, original, marked, renders) -> None:
 
 def run_embed(args) -> int:
     from ..api import load
+    from ..metrics import MAX_FLIP
     from ..mesh import load as load_mesh, save
     from ..mesh.io import check_output
 
@@ -252,13 +251,22 @@ def run_embed(args) -> int:
         check_output(args.preview, mesh.source.input_files)
     key = _key(args)
     base = watermarker.layout(mesh, note=True)  # what the mark is added to (palette faces charted), charted once
-    if args.bits is not None:
-        marked = watermarker.embed(base, bits=args.bits, key=key, strength=args.strength)
+    message = {"bits": args.bits} if args.bits is not None else {"message": args.message if args.id is None else args.id}
+    asked = 1.0 if args.strength is None else args.strength
+    if args.max_flip is not None and args.max_flip > 0 and args.views == 0:
+        raise MeshsealError("--max-flip measures the mark in renders: give --views 1 or more, or --max-flip 0")
+    default_budget = args.strength is None and args.views > 0
+    max_flip = args.max_flip if args.max_flip is not None else (MAX_FLIP if default_budget else 0.0)
+    budget = max_flip > 0 and watermarker.calibrated
+    if budget:
+        marked, strength = watermarker.embed_within(base, **message, key=key, strength=asked, max_flip=max_flip,
+                                                    views=args.views)
     else:
-        marked = watermarker.embed(base, args.message if args.id is None else args.id, key=key, strength=args.strength)
+        marked, strength = watermarker.embed(base, **message, key=key, strength=asked), asked
     written = save(marked, args.output)
     report, renders = embed_report(base, marked, args.views)
-    report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": args.strength,
+    report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": round(strength, 4),
+               "strength_asked": asked, "max_flip": max_flip if budget else None,
                "cells": watermarker.mark_grid(base), "keyed": key is not None, "output": str(args.output)}
     if args.preview is not None:
         write_preview(args.preview, base, marked, renders)
@@ -273,6 +281,9 @@ def run_embed(args) -> int:
         shown = f" (over the texels the mesh shows: {shown} dB)" if shown is not None else ""
         print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB{shown}{cells}, normal change "
               f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels")
+        if strength != asked:
+            print(f"strength {asked:g} lowered to {strength:.3g} to keep the mark's FLIP at most {max_flip} "
+                  "(--max-flip)")
         if args.views:
             print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {report['psnr_object']:.2f} dB, "
                   f"SSIM {report['ssim_object']:.4f}, FLIP {report['flip_object']:.4f} "
@@ -437,6 +448,7 @@ def run_eval(args) -> int:
     from ..data.dataset import MeshDataset
     from ..distortions import Distortions2D, Distortions3D
     from ..evaluate import evaluate, evaluate_registered
+    from ..metrics import MAX_FLIP
 
     watermarker = load(args.model)
     if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
@@ -458,8 +470,9 @@ def run_eval(args) -> int:
         if not watermarker.informed:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
         log = None if args.json else print
+        max_flip = MAX_FLIP if args.max_flip is None else (args.max_flip or None)
         metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(size, 64),
-                                      args.sampler, log, views=args.views)
+                                      args.sampler, log, views=args.views, max_flip=max_flip)
     else:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
