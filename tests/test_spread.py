@@ -109,6 +109,19 @@ def test_embed_lowers_the_strength_to_keep_the_marks_flip_within_the_budget(tmp_
     assert main(["embed", *common, "--max-flip", "2"]) == 2
 
 
+def test_a_flip_budget_lowers_the_strength_by_the_power_law_and_keeps_it_where_nothing_is_seen():
+    from meshseal.metrics import MIN_STRENGTH, strength_within
+
+    tried = []
+    flip_at = lambda s: (tried.append(s), 0.0311 * s ** 0.7)[1]  # noqa: E731 (the teapot's curve)
+    marked, strength, flip = strength_within(lambda s: (f"marked at {s}", flip_at(s)), 1.0, 0.03)
+    assert 0.9 < strength < 1.0 and 0.029 < flip <= 0.03 and marked == f"marked at {strength}" and len(tried) == 2
+    _, strength, flip = strength_within(lambda s: (None, flip_at(s)), 1.0, 0.001)  # out of reach: the floor
+    assert strength == MIN_STRENGTH and flip > 0.001
+    _, strength, _ = strength_within(lambda s: (None, float("nan")), 1.0, 0.03)  # no object pixel in any view
+    assert strength == 1.0
+
+
 def test_texels_used_are_the_ones_faces_cover_wrapped_with_their_neighbours():
     quad = torch.tensor([[0.0, 0.0], [0.5, 0.0], [0.5, 1.0], [0.0, 1.0]])  # the left half of the UV square
     used = texels_used(quad, torch.tensor([[0, 1, 2], [0, 2, 3]]), 16, 16)

@@ -51,10 +51,12 @@ def object_flip(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
 def visibility(original: torch.Tensor, marked: torch.Tensor, mask: torch.Tensor) -> dict:
     """Object-pixel PSNR, SSIM and FLIP of renders (B, 3, H, W) of the original and the marked mesh
     with the object's coverage `mask` (B, H, W), averaged over the B views; 8-bit quantised first, as
-    saved pictures are."""
+    saved pictures are. NaN where no view shows the object."""
     quantise = lambda x: torch.round(x.clamp(0, 1) * 255) / 255  # noqa: E731
     rows = [(object_psnr(quantise(o), quantise(m), k), object_ssim(quantise(o), quantise(m), k),
              object_flip(quantise(o), quantise(m), k)) for o, m, k in zip(original, marked, mask) if k.any()]
+    if not rows:  # no view shows an interior pixel of the object (a thin or tiny one): nothing measured
+        return {"psnr_object": math.nan, "ssim_object": math.nan, "flip_object": math.nan}
     return {"psnr_object": float(np.mean([r[0] for r in rows])), "ssim_object": float(np.mean([r[1] for r in rows])),
             "flip_object": float(np.mean([r[2] for r in rows]))}
 
@@ -82,10 +84,11 @@ def strength_within(mark: Callable[[float], tuple[Any, float]], strength: float,
     """The strength lowered from `strength` until the mark's FLIP is at most `max_flip`: `mark(s)` marks
     at strength s and returns (marked, its FLIP). FLIP grows about as strength^0.7 near the default
     (teapot: 0.0266 / 0.0290 / 0.0311 at 0.8 / 0.9 / 1), so one step usually lands just under the budget;
-    at most `FLIP_ROUNDS` markings, never below `MIN_STRENGTH`. Returns (marked, strength, FLIP)."""
+    at most `FLIP_ROUNDS` markings, never below `MIN_STRENGTH`. A FLIP of NaN (no view shows the object's
+    interior, nothing to see) keeps the strength. Returns (marked, strength, FLIP)."""
     for round_ in range(FLIP_ROUNDS):
         marked, flip = mark(strength)
-        if flip <= max_flip or strength <= MIN_STRENGTH or round_ == FLIP_ROUNDS - 1:
+        if not flip > max_flip or strength <= MIN_STRENGTH or round_ == FLIP_ROUNDS - 1:  # NaN: nothing seen
             break
         strength = max(MIN_STRENGTH, strength * 0.98 * (max_flip / flip) ** (1 / 0.7))
     return marked, strength, flip

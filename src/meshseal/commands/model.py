@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from contextlib import closing
 from pathlib import Path
@@ -197,10 +198,11 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
         return report, None
     render_a, render_b, inside = render_pair(original, marked, views)
     seen = visibility(render_a, render_b, inside)
+    measured = lambda value, digits: None if math.isnan(value) else round(value, digits)  # noqa: E731 (NaN: not seen)
     report |= {
-        "psnr_object": round(seen["psnr_object"], 3),
-        "ssim_object": round(seen["ssim_object"], 5),
-        "flip_object": round(seen["flip_object"], 4),
+        "psnr_object": measured(seen["psnr_object"], 3),
+        "ssim_object": measured(seen["ssim_object"], 5),
+        "flip_object": measured(seen["flip_object"], 4),
         "psnr_frame": round(float(psnr(render_b, render_a).mean()), 3),
         "ssim_frame": round(float(ssim(render_b, render_a).mean()), 5),
     }
@@ -285,8 +287,9 @@ def run_embed(args) -> int:
             print(f"strength {asked:g} lowered to {strength:.3g} to keep the mark's FLIP at most {max_flip} "
                   "(--max-flip)")
         if args.views:
-            print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {report['psnr_object']:.2f} dB, "
-                  f"SSIM {report['ssim_object']:.4f}, FLIP {report['flip_object']:.4f} "
+            figure = lambda key, digits: "n/a" if report[key] is None else f"{report[key]:.{digits}f}"  # noqa: E731
+            print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {figure('psnr_object', 2)} dB, "
+                  f"SSIM {figure('ssim_object', 4)}, FLIP {figure('flip_object', 4)} "
                   f"(whole frame: PSNR {report['psnr_frame']:.2f} dB, SSIM {report['ssim_frame']:.4f})")
         if args.preview is not None:
             print(f"wrote preview {args.preview}")
