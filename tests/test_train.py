@@ -1,6 +1,7 @@
 """Training, evaluation, the API and the model CLI end to end on a tiny dataset built from the fixtures."""
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -233,3 +234,20 @@ def test_camera_known_eval_reads_as_shipped_without_registering(dataset, monkeyp
     full = E.evaluate_registered(model, test, n_meshes=2, size=64)
     assert known["bit_acc_known_camera"] == full["bit_acc_known_camera"]
     assert known["tpr_known_camera"] == full["tpr_known_camera"]
+
+
+def test_registered_eval_marks_each_mesh_under_embeds_flip_budget(dataset):
+    """Each mesh is marked as `meshseal embed` marks it, within the FLIP budget: a budget out of reach
+    lowers every mesh's strength to the floor, which the texture PSNR shows; none marks at strength 1."""
+    from meshseal import evaluate as E
+    from meshseal.data.dataset import MeshDataset
+    from meshseal.metrics import MIN_STRENGTH
+
+    model, test = meshseal.load().model, MeshDataset(dataset, "test")
+    plain = E.evaluate_registered(model, test, n_meshes=2, size=64, register=False, max_flip=None)
+    tight = E.evaluate_registered(model, test, n_meshes=2, size=64, register=False, max_flip=1e-4)
+    assert "max_flip" not in plain and 39.0 < plain["psnr_texture_shown"] < 41.5
+    assert tight["strength_lowered"] == 1.0 and tight["strength_mean"] == MIN_STRENGTH
+    assert abs(tight["psnr_texture_shown"] - plain["psnr_texture_shown"] - 20 * math.log10(1 / MIN_STRENGTH)) < 0.5
+    assert tight["flip_object"] < plain["flip_object"] and 0.9 < plain["ssim_object"] <= 1.0
+

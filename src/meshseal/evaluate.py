@@ -148,6 +148,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
             clean = renderer(original, cameras, lights, size, size, background)  # what the mark changed, as seen
             seen = visibility(clean.image, pictures, clean.rgba[..., 3] > 0.5)
+            texture_psnr = float(shown_texture_psnr(texture_marked, texture, batch_texels_used(batch))[0])
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
         readings = []
         for view in range(views):
@@ -174,7 +175,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "exact": found is not None and found.message == identity,
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
-            rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "flip_object": seen["flip_object"],
+            rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
+                               "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
                                "strength": strength if watermarker.calibrated else None})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
@@ -189,8 +191,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     success = (pose < 0.5) | (torch.tensor([r["iou"] for r in rows]) >= 0.95)
     accuracy = torch.tensor([r["bit_acc"] for r in rows])
     result = {"bit_acc": float(accuracy.mean()), "bit_acc_std": float(accuracy.std()) if len(rows) > 1 else 0.0,
-              "bit_acc_known_camera": mean("bit_acc_known"), "psnr_object": mean("psnr_object"),
-              "flip_object": mean("flip_object"),
+              "bit_acc_known_camera": mean("bit_acc_known"), "psnr_texture_shown": mean("psnr_texture_shown"),
+              "psnr_object": mean("psnr_object"), "ssim_object": mean("ssim_object"), "flip_object": mean("flip_object"),
               "registration_success": float(success.float().mean()), "registration_iou": mean("iou"),
               # Quantiles count a refused picture as infinitely off; max is over the pictures read; a
               # figure that is not finite is null (JSON has no infinity).
@@ -216,7 +218,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
-            "psnr_object", "flip_object", "max_flip", "strength_mean", "strength_lowered",
+            "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "max_flip", "strength_mean", "strength_lowered",
             "seconds_per_picture", "n_meshes", "n_views", "size")}
     return result
 
