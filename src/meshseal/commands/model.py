@@ -284,8 +284,10 @@ def run_embed(args) -> int:
         print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB{shown}{cells}, normal change "
               f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels")
         if strength != asked:
-            print(f"strength {asked:g} lowered to {strength:.3g} to keep the mark's FLIP at most {max_flip} "
-                  "(--max-flip)")
+            reached = report.get("flip_object") is None or report["flip_object"] <= max_flip
+            goal = f"to keep the mark's FLIP at most {max_flip}" if reached else \
+                f"(the floor; the mark's FLIP stays above {max_flip})"
+            print(f"strength {asked:g} lowered to {strength:.3g} {goal} (--max-flip)")
         if args.views:
             figure = lambda key, digits: "n/a" if report[key] is None else f"{report[key]:.{digits}f}"  # noqa: E731
             print(f"renders over the object's pixels ({args.views} views, 256^2): PSNR {figure('psnr_object', 2)} dB, "
