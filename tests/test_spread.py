@@ -114,11 +114,11 @@ def test_a_flip_budget_lowers_the_strength_by_the_power_law_and_keeps_it_where_n
 
     tried = []
     flip_at = lambda s: (tried.append(s), 0.0311 * s ** 0.7)[1]  # noqa: E731 (the teapot's curve)
-    marked, strength, flip = strength_within(lambda s: (f"marked at {s}", flip_at(s)), 1.0, 0.03)
-    assert 0.9 < strength < 1.0 and 0.029 < flip <= 0.03 and marked == f"marked at {strength}" and len(tried) == 2
-    _, strength, flip = strength_within(lambda s: (None, flip_at(s)), 1.0, 0.001)  # out of reach: the floor
+    marked, strength, flip = strength_within(lambda s: s, flip_at, 1.0, 0.03)  # "marked" is its strength here
+    assert 0.9 < strength < 1.0 and 0.029 < flip <= 0.03 and marked == strength and len(tried) == 2
+    _, strength, flip = strength_within(lambda s: s, flip_at, 1.0, 0.001)  # out of reach: the floor
     assert strength == MIN_STRENGTH and flip > 0.001
-    _, strength, _ = strength_within(lambda s: (None, float("nan")), 1.0, 0.03)  # no object pixel in any view
+    _, strength, _ = strength_within(lambda s: s, lambda _: float("nan"), 1.0, 0.03)  # no object pixel in any view
     assert strength == 1.0
 
 

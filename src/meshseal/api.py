@@ -301,7 +301,7 @@ class Watermarker:
         minified in renders, such as a tiled brick pattern, can show a mark of 40 dB more than most).
         Never below `metrics.MIN_STRENGTH` (a warning says when the budget is not met). Returns the
         marked mesh and the strength used."""
-        from .metrics import MIN_STRENGTH, render_pair, strength_within, visibility
+        from .metrics import MIN_STRENGTH, seed_renders, strength_within, visibility
 
         if not 0.0 < max_flip <= 1.0:
             raise MeshsealError(f"max_flip must be in (0, 1], got {max_flip}")
@@ -310,11 +310,10 @@ class Watermarker:
         if not self.calibrated:
             raise MeshsealError("a FLIP budget is for spread-spectrum models (their strength scales the mark)")
 
-        def mark(at: float) -> tuple[Mesh, float]:
-            marked = self.embed(mesh, message, bits=bits, key=key, strength=at, warn=at == strength)
-            return marked, visibility(*render_pair(mesh, marked, views))["flip_object"]
-
-        marked, strength, flip = strength_within(mark, strength, max_flip)
+        seen, inside = seed_renders(mesh, views)  # the original, rendered once for every try
+        marked, strength, flip = strength_within(
+            lambda at: self.embed(mesh, message, bits=bits, key=key, strength=at, warn=at == strength),
+            lambda marked: visibility(seen, seed_renders(marked, views)[0], inside)["flip_object"], strength, max_flip)
         if flip > max_flip:
             floor = f" (the budget lowers the strength no further than {MIN_STRENGTH})" if strength <= MIN_STRENGTH else ""
             print(f"meshseal: warning: the mark's FLIP is {flip:.4f} at strength {strength:.3g}, above the budget "

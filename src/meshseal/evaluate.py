@@ -16,7 +16,7 @@ import torch
 from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
-from .metrics import BUDGET_VIEWS, MAX_FLIP, render_pair, shown_texture_psnr, strength_within, visibility
+from .metrics import BUDGET_VIEWS, MAX_FLIP, seed_renders, shown_texture_psnr, strength_within, visibility
 from .models import WatermarkModel
 from .pipeline import batch_mark_grid, batch_texels_used, charted_item, run_pass, unpadded
 from .render import MeshRenderer
@@ -125,20 +125,20 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float().to(device)
         positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
         with torch.no_grad():
-            if watermarker.calibrated:
+            used = batch_texels_used(batch)
+            strength = None  # learned models have no strength
+            if watermarker.calibrated:  # as `meshseal embed` marks it: within its FLIP budget
                 normals_marked, uvs_marked = normals, uvs
-                grid, used = batch_mark_grid(model, batch), batch_texels_used(batch)
-                unmarked = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
-
-                def mark(at: float):
-                    marked_texture = model.mark_texture(texture, message, at, payload.key_seed(None), grid, used)
-                    if max_flip is None:
-                        return marked_texture, 0.0
-                    seen_marked = MeshBatch.from_tensors(positions, normals, uvs, faces, marked_texture)
-                    return marked_texture, visibility(*render_pair(unmarked, seen_marked, BUDGET_VIEWS))["flip_object"]
-
-                # as `meshseal embed` marks it: within its FLIP budget
-                texture_marked, strength, _ = strength_within(mark, 1.0, max_flip or 1.0)
+                grid = batch_mark_grid(model, batch)
+                mark = lambda at: model.mark_texture(texture, message, at, payload.key_seed(None), grid, used)  # noqa: E731
+                if max_flip is None:
+                    texture_marked, strength = mark(1.0), 1.0
+                else:
+                    seen_original, inside = seed_renders(MeshBatch.from_tensors(positions, normals, uvs, faces, texture),
+                                                         BUDGET_VIEWS)
+                    flip = lambda t: visibility(seen_original, seed_renders(  # noqa: E731
+                        MeshBatch.from_tensors(positions, normals, uvs, faces, t), BUDGET_VIEWS)[0], inside)["flip_object"]
+                    texture_marked, strength, _ = strength_within(mark, flip, 1.0, max_flip)
             else:
                 normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
             cameras, lights = sample_views(views, sampler, generator)
@@ -148,7 +148,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
             clean = renderer(original, cameras, lights, size, size, background)  # what the mark changed, as seen
             seen = visibility(clean.image, pictures, clean.rgba[..., 3] > 0.5)
-            texture_psnr = float(shown_texture_psnr(texture_marked, texture, batch_texels_used(batch))[0])
+            texture_psnr = float(shown_texture_psnr(texture_marked, texture, used)[0])
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
         readings = []
         for view in range(views):
@@ -177,7 +177,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "exact_known": truth is not None and truth.message == identity}
             rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
-                               "strength": strength if watermarker.calibrated else None})
+                               "strength": strength})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")

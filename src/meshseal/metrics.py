@@ -74,40 +74,44 @@ def shown_texture_psnr(marked: torch.Tensor, original: torch.Tensor, used: torch
 
 
 MAX_FLIP = 0.03  # `meshseal embed`'s default visibility budget: the mark's mean FLIP over the object's pixels
-BUDGET_VIEWS = 4  # ... in renders from this many seed views (`render_pair`), as its report measures it
+BUDGET_VIEWS = 4  # ... in renders from this many seed views (`seed_renders`), as its report measures it
 MIN_STRENGTH = 0.5  # a FLIP budget lowers the strength no further (at 0.5 saved pictures still read fully)
 FLIP_ROUNDS = 4  # markings a FLIP budget tries at most
 
 
-def strength_within(mark: Callable[[float], tuple[Any, float]], strength: float, max_flip: float
+def strength_within(mark: Callable[[float], Any], flip: Callable[[Any], float], strength: float, max_flip: float
                     ) -> tuple[Any, float, float]:
     """The strength lowered from `strength` until the mark's FLIP is at most `max_flip`: `mark(s)` marks
-    at strength s and returns (marked, its FLIP). FLIP grows about as strength^0.7 near the default
+    at strength s, `flip(marked)` measures it. FLIP grows about as strength^0.7 near the default
     (teapot: 0.0266 / 0.0290 / 0.0311 at 0.8 / 0.9 / 1), so one step usually lands just under the budget;
     at most `FLIP_ROUNDS` markings, never below `MIN_STRENGTH`. A FLIP of NaN (no view shows the object's
     interior, nothing to see) keeps the strength. Returns (marked, strength, FLIP)."""
     for round_ in range(FLIP_ROUNDS):
-        marked, flip = mark(strength)
-        if not flip > max_flip or strength <= MIN_STRENGTH or round_ == FLIP_ROUNDS - 1:  # NaN: nothing seen
+        marked = mark(strength)
+        seen = flip(marked)
+        if not seen > max_flip or strength <= MIN_STRENGTH or round_ == FLIP_ROUNDS - 1:  # NaN: nothing seen
             break
-        strength = max(MIN_STRENGTH, strength * 0.98 * (max_flip / flip) ** (1 / 0.7))
-    return marked, strength, flip
+        strength = max(MIN_STRENGTH, strength * 0.98 * (max_flip / seen) ** (1 / 0.7))
+    return marked, strength, seen
 
 
-def render_pair(original, marked, views: int, size: int = 256):
-    """Both meshes (`Mesh`, brought into the canonical frame, or a `MeshBatch` already in it) rendered by
-    our renderer from the same `views` seeded views (seed 0) -> pictures (B, 3, H, W) each and the
-    object's interior pixels (B, H, W)."""
+def seed_renders(mesh, views: int, size: int = 256):
+    """A mesh (`Mesh`, brought into the canonical frame, or a `MeshBatch` already in it) rendered by our
+    renderer from `views` seeded views (seed 0) -> pictures (B, 3, H, W) and the object's interior
+    pixels (B, H, W): what `meshseal embed` reports visibility in."""
     from .mesh import Mesh, normalize, to_z_up
     from .pipeline import sample_views
     from .render import MeshBatch, MeshRenderer
 
     cameras, lights = sample_views(views, "seed", torch.Generator().manual_seed(0))
-    renderer = MeshRenderer()
-    images = []
-    for mesh in (original, marked):
-        batch = MeshBatch.from_mesh(normalize(to_z_up(mesh))) if isinstance(mesh, Mesh) else mesh
-        with torch.no_grad():
-            out = renderer(batch, cameras.to(batch.positions.device), lights.to(batch.positions.device), size, size)
-        images.append(out.image)
-    return images[0], images[1], out.rgba[..., 3] > 0.999
+    batch = MeshBatch.from_mesh(normalize(to_z_up(mesh))) if isinstance(mesh, Mesh) else mesh
+    device = batch.positions.device
+    with torch.no_grad():
+        out = MeshRenderer()(batch, cameras.to(device), lights.to(device), size, size)
+    return out.image, out.rgba[..., 3] > 0.999
+
+
+def render_pair(original, marked, views: int, size: int = 256):
+    """`seed_renders` of both meshes -> pictures (B, 3, H, W) each and the object's interior pixels."""
+    (image_a, inside), (image_b, _) = seed_renders(original, views, size), seed_renders(marked, views, size)
+    return image_a, image_b, inside
