@@ -445,3 +445,19 @@ def test_latin1_obj_with_non_utf8_material_name_loads(tmp_path):
     (tmp_path / "latin.obj").write_bytes(b"mtllib m.mtl\nusemtl caf\xe9\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     mesh = load(tmp_path / "latin.obj")
     assert mesh.n_faces == 1 and mesh.materials[0].name == "caf\u00e9"
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_saved_files_honour_the_umask(tmp_path, umask):
+    """Every file written (OBJ, MTL, textures, a GLB) gets 0666 less the umask, as a plainly created
+    file would, not the 0600 of the temporary file it is renamed from."""
+    previous = os.umask(umask)
+    try:
+        written = save(load(FIXTURES / "sh3d_deckChair" / "deckChair.obj"), tmp_path / "chair.obj")
+        written += save(load(FIXTURES / "bunny.glb"), tmp_path / "bunny.glb")
+        mesh_io.atomic_write(tmp_path / "one.png", b"x")
+    finally:
+        os.umask(previous)
+    assert len(written) >= 5
+    for path in [*written, tmp_path / "one.png"]:
+        assert (path.stat().st_mode & 0o777) == 0o666 & ~umask, path

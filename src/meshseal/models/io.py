@@ -16,10 +16,13 @@ from .watermark import ModelConfig, WatermarkModel
 
 
 def save_tensors(tensors: dict[str, torch.Tensor], path, metadata: dict[str, str]) -> None:
-    """Atomic safetensors write."""
+    """Atomic safetensors write, with the permissions the umask gives a new file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    from ..mesh.io import file_mode
+
     handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.fchmod(handle, file_mode())  # mkstemp makes it 0600: give the output the umask's permissions
     os.close(handle)
     try:
         save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, temp, metadata=metadata)
