@@ -7,8 +7,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import MeshsealError
-from ..render import ENGINES
-from ..render.blender import LIGHT_KINDS, VIEW_TRANSFORMS
+from ..render import ENGINES, LIGHT_KINDS, VIEW_TRANSFORMS
 from ._common import colour, positive_int, vector3
 
 FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}

@@ -34,7 +34,7 @@ from PIL import Image
 
 from ..errors import MeshError, MeshsealError
 from . import sources as S
-from .formats import RawMesh, read_image, read_mesh
+from .formats import MESH_SUFFIXES, RawMesh, read_image, read_mesh
 from .process import ProcessOptions, process_mesh, resize
 
 # Workers are spawned, not forked: a fork after torch/numba started their threads can deadlock.
@@ -222,7 +222,7 @@ def gather(sources: list[str], texture_sources: list[str], cache: Path, from_fol
     if from_folder is not None:
         assets += S.folder_source(from_folder, license_, creator)
         if not assets:
-            raise S.DataError(f"{from_folder}: no mesh files found ({', '.join(sorted(S.MESH_SUFFIXES))})")
+            raise S.DataError(f"{from_folder}: no mesh files found ({', '.join(sorted(MESH_SUFFIXES))})")
     sh3d_textures: list[S.TextureCandidate] = []
     for name in sources:
         if name not in S.MESH_SOURCES:

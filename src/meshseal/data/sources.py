@@ -22,7 +22,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..errors import MeshsealError
-from .formats import IMAGE_SUFFIXES, MESH_SUFFIXES
 
 
 class DataError(MeshsealError):
@@ -424,6 +423,8 @@ _SKIP_TEXTURE = re.compile(r"(_norm|_gloss|_glow|_bump|_shirt|_pants|_reflect|_s
 
 
 def texture_package_source(key: str, cache: Path, log=print):
+    from .formats import IMAGE_SUFFIXES  # numpy and PIL: not imported to build the command line's parser
+
     package, license_ = TEXTURE_PACKAGES[key]
     deb = fetch_deb(package, cache, log)
     version = deb_version(deb)
@@ -446,6 +447,8 @@ def texture_package_source(key: str, cache: Path, log=print):
 
 def folder_source(folder: Path, license_: str = "unknown", creator: str = "unknown"):
     """Meshes under `folder`; the category is the nearest folder name that is not train/test."""
+    from .formats import MESH_SUFFIXES  # numpy and PIL: not imported to build the command line's parser
+
     folder = Path(folder)
     if not folder.is_dir():
         raise DataError(f"{folder}: no such folder")
@@ -471,6 +474,8 @@ def folder_source(folder: Path, license_: str = "unknown", creator: str = "unkno
 
 
 def image_folder_textures(folder: Path, license_: str = "unknown"):
+    from .formats import IMAGE_SUFFIXES  # numpy and PIL: not imported to build the command line's parser
+
     folder = Path(folder)
     if not folder.is_dir():
         raise DataError(f"{folder}: no such folder")

@@ -27,12 +27,11 @@ import torch
 
 from ..errors import MeshsealError
 from ..mesh.core import Mesh
+from . import LIGHT_KINDS, VIEW_TRANSFORMS
 from .cameras import Cameras
 from .lighting import ATTENUATION, K_AMBIENT, K_DIFFUSE, PointLights
 
 ENGINES = ("cycles", "eevee", "workbench")
-VIEW_TRANSFORMS = ("Standard", "AgX")
-LIGHT_KINDS = ("point", "sun", "area", "world")
 DEFAULT_SAMPLES = {"cycles": 64, "eevee": 16, "workbench": 8}
 WORKER_TIMEOUT_S = 3600
 

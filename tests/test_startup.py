@@ -1,0 +1,70 @@
+"""The command line's help and argument errors do not import the heavy libraries (torch, numba, trimesh,
+numpy): they are answered from the parser alone, so they come back at once even on a loaded machine.
+
+Run in a fresh interpreter: the test session itself has imported torch long before."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+HEAVY = ("torch", "numba", "trimesh", "numpy", "PIL", "scipy", "galois")
+
+PROBE = """
+import contextlib, io, json, sys
+from meshseal.cli import build_parser, main
+codes = {}
+with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as err:
+    for argv in %r:
+        codes[" ".join(argv)] = main(argv)
+print(json.dumps({"codes": codes, "loaded": [m for m in %r if m in sys.modules], "stderr": err.getvalue()}))
+"""
+
+COMMANDS = [["--help"], ["--version"], ["render", "--help"], ["info", "--help"], ["data", "--help"],
+            ["data", "build", "--help"], ["embed", "--help"], ["detect", "--help"], ["eval", "--help"],
+            ["models", "--help"]]
+BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", "-o", "x.png", "--width", "-3"],
+                 ["detect", "x.png", "--workers", "0"]]
+
+
+def probe(argvs):
+    out = subprocess.run([sys.executable, "-c", PROBE % (argvs, HEAVY)], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_help_does_not_import_the_heavy_libraries():
+    result = probe(COMMANDS)
+    assert result["loaded"] == []
+    assert set(result["codes"].values()) == {0}
+
+
+def test_bad_arguments_are_refused_without_the_heavy_libraries():
+    result = probe(BAD_ARGUMENTS)
+    assert result["loaded"] == []
+    assert set(result["codes"].values()) == {2}
+    assert result["stderr"].count("meshseal: error:") == len(BAD_ARGUMENTS)
+
+
+SUBMODULE_FIRST = """
+import importlib, types
+for package, name in %r:
+    importlib.import_module(package + "." + name)  # the submodule first: the import system records it
+    value = getattr(importlib.import_module(package), name)
+    assert callable(value) and not isinstance(value, types.ModuleType), (package, name, value)
+    assert name in dir(importlib.import_module(package))
+print("ok")
+"""
+
+
+def test_lazy_names_stay_the_functions_after_their_submodule_is_imported():
+    """`meshseal.render.interpolate` is the function and `meshseal.data.build` the builder, as when the
+    packages imported everything at once, even where the submodule of the same name was imported first."""
+    pairs = [("meshseal.render", "interpolate"), ("meshseal.render", "unrender"), ("meshseal.data", "build")]
+    out = subprocess.run([sys.executable, "-c", SUBMODULE_FIRST % (pairs,)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    from meshseal import Watermarker, load_mesh
+    from meshseal.render import MeshRenderer, make_renderer
+
+    assert callable(load_mesh) and isinstance(Watermarker, type) and isinstance(MeshRenderer, type)
+    assert callable(make_renderer)
