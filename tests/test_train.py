@@ -13,6 +13,7 @@ from safetensors.torch import load_file
 
 import meshseal
 from meshseal.cli import main
+from meshseal.errors import MeshsealError
 from meshseal.data.build import build
 from meshseal.models.io import load_model
 from meshseal.train import TrainConfig, Trainer
@@ -90,6 +91,44 @@ def test_same_seed_same_numbers_and_resume_continues_exactly(dataset, tmp_path):
     assert first.keys() == resumed.keys()
     for key in first:
         assert torch.allclose(first[key].float(), resumed[key].float(), atol=1e-6), key
+
+
+def _texture_config(data, **train):
+    config = _config(data, **({"gbuffer_views": 2, "retexture": 0.0} | train))
+    config.model.strategy = "texture"
+    return config
+
+
+def test_texture_models_train_on_cached_gbuffers_and_resume_exactly(dataset, tmp_path):
+    """A texture-only blind model trains on baked views (no rasterizing in the step), the bake is kept
+    beside the data and reused, and a resumed run ends where an uninterrupted one does."""
+    quiet = lambda *_: None  # noqa: E731
+    first = Trainer(_texture_config(dataset), tmp_path / "a", log=quiet)
+    assert first.views is not None and len(first.views["train"]) == 2 * len(first.train_set)
+    banks = sorted((dataset / "gbuffers").glob("*.npz"))
+    assert len(banks) == 2  # train and test
+    stamps = [bank.stat().st_mtime_ns for bank in banks]
+    first.fit()
+    rows = (tmp_path / "a" / "log.csv").read_text().splitlines()
+    assert len(rows) == 7 and rows[-1].split(",")[1] == "2"
+    assert len((tmp_path / "a" / "val.csv").read_text().splitlines()) == 3
+    Trainer(_texture_config(dataset, steps=3), tmp_path / "c", log=quiet).fit()
+    resumed = Trainer(_texture_config(dataset), tmp_path / "c", resume=True, log=quiet)
+    resumed.fit()
+    assert [bank.stat().st_mtime_ns for bank in banks] == stamps  # reused, not baked again
+    log = lambda run: [r.split(",")[:5] for r in (tmp_path / run / "log.csv").read_text().splitlines()]  # noqa: E731
+    assert log("a") == log("c")
+    a, c = load_file(str(tmp_path / "a" / "model.safetensors")), load_file(str(tmp_path / "c" / "model.safetensors"))
+    for key in a:
+        assert torch.allclose(a[key].float(), c[key].float(), atol=1e-6), key
+
+
+def test_gbuffer_path_can_be_turned_off_and_refuses_models_it_cannot_serve(dataset, tmp_path):
+    quiet = lambda *_: None  # noqa: E731
+    assert Trainer(_texture_config(dataset, gbuffer="off", steps=1), tmp_path / "off", log=quiet).views is None
+    assert Trainer(_config(dataset, steps=1), tmp_path / "vertex", log=quiet).views is None  # vertex+texture
+    with pytest.raises(MeshsealError, match="gbuffer: on"):
+        Trainer(_config(dataset, gbuffer="on"), tmp_path / "on", log=quiet)
 
 
 def test_bad_configs_are_clear_errors(tmp_path):

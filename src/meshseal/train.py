@@ -27,7 +27,7 @@ import yaml
 from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .errors import MeshsealError
-from .losses import bit_accuracy, masked_l1, message_loss, psnr
+from .losses import bit_accuracy, masked_l1, message_loss, psnr, ssim
 from .models import ModelConfig, WatermarkModel
 from .models.io import save_model, save_tensors
 from .pipeline import random_backgrounds, run_pass
@@ -78,6 +78,10 @@ class TrainSettings:
     lr_decay_from: int | None = None  # cosine decay of the learning rate to 5 % from this step to the last
     init_from: str | None = None  # start from these weights (a model.safetensors of the same architecture)
     frozen: list | None = None  # parts kept as they start: texture_encoder | vertex_encoder | decoder
+    gbuffer: str = "auto"  # auto: texture-only blind models train on cached G-buffers (training.gbuffer); off
+    gbuffer_views: int = 8  # baked views per training mesh (each its own camera, light and 3D distortion)
+    log_every: int = 0  # steps between log rows (one host round trip each); 0: 1 on the CPU, 50 on a GPU
+    amp: bool = True  # bfloat16 autocast on CUDA
 
 
 @dataclass
@@ -234,8 +238,123 @@ class Trainer:
         self.texture_weight = config.loss.texture
         self.position = (0, 0)  # (epoch, offset) of the next batch
         self.elapsed = 0.0
+        self.views = self._view_banks() if self._uses_gbuffers() else None
+        self._pending_psnr, self._pending_count = None, 0  # G-buffer steps' PSNRs since the last dual update
         if resume and (self.out / "checkpoint.safetensors").is_file():
             self._restore()
+
+    # -------------------------------------------------------- cached G-buffers
+    def _uses_gbuffers(self) -> bool:
+        """Texture-only blind models with a learned encoder train on cached G-buffers unless told not to."""
+        mode, model = self.config.train.gbuffer, self.model
+        if mode not in ("auto", "on", "off"):
+            raise MeshsealError(f"gbuffer: '{mode}' is not one of auto | on | off")
+        applies = (model.vertex_encoder is None and model.texture_encoder is not None and not model.informed
+                   and model.decoder is not None)
+        if mode == "on" and not applies:
+            raise MeshsealError("gbuffer: on needs a texture-only model with a learned encoder and a blind decoder")
+        return mode != "off" and applies
+
+    def _view_banks(self) -> dict:
+        """The train and test views, baked once into `<data>/gbuffers/` and kept on the training device,
+        with the items' textures (uint8) beside them."""
+        from .training.gbuffer import bake_key, cached_bake
+
+        cfg = self.config.train
+        folder = Path(self.config.data) / "gbuffers"
+        size = self.model.config.frame_size
+        distort = Distortions3D(cfg.distortion_3d) if cfg.distortion_3d > 0 else None
+        train = cached_bake(self.train_set.dataset, folder / bake_key("train", cfg.texture_kinds, cfg.gbuffer_views, size,
+                                                                     cfg.sampler, self.config.seed, cfg.distortion_3d),
+                            cfg.gbuffer_views, size, cfg.sampler, self.config.seed, distort, self.log)
+        val_views = min(len(self.val_set), cfg.val_meshes)
+        val_set = torch.utils.data.Subset(self.val_set, range(val_views))
+        val_set.rows = self.val_set.rows[:val_views]
+        test = cached_bake(val_set, folder / bake_key("test", cfg.texture_kinds, 1, size, cfg.sampler,
+                                                      self.config.seed + 1_000_003, 0.0),
+                           1, size, cfg.sampler, self.config.seed + 1_000_003, None, self.log)
+        as_bytes = lambda dataset, count: torch.stack([self._texture_bytes(dataset, i) for i in range(count)])  # noqa: E731
+        return {"train": train.to(self.device), "test": test.to(self.device),
+                "train_textures": as_bytes(self.train_set, len(self.train_set)).to(self.device),
+                "test_textures": as_bytes(self.val_set, val_views).to(self.device), "textures_epoch": 0}
+
+    @staticmethod
+    def _texture_bytes(dataset, index: int) -> torch.Tensor:
+        source = getattr(dataset, "dataset", dataset)
+        return torch.from_numpy(source.texture_for(index).copy()).permute(2, 0, 1).contiguous()
+
+    def _view_batches(self):
+        """Batches of view indices (on the device) in an order drawn from (seed, epoch) alone, so a
+        resumed run continues exactly; with `retexture` each epoch reads the items' textures afresh."""
+        size, bank = self.config.train.batch_size, self.views
+        while True:
+            epoch, offset = self.position
+            if self.config.train.retexture > 0 and bank["textures_epoch"] != epoch:
+                self.train_set.set_epoch(epoch)
+                bank["train_textures"] = torch.stack([self._texture_bytes(self.train_set, i)
+                                                      for i in range(len(self.train_set))]).to(self.device)
+                bank["textures_epoch"] = epoch
+            order = torch.randperm(len(bank["train"]), generator=torch.Generator().manual_seed(
+                self.config.seed * 100_003 + epoch)).to(self.device)
+            for start in range(offset, len(order) - size + 1, size):
+                self.position = (epoch, start + size)
+                yield order[start:start + size]
+            self.position = (epoch + 1, 0)
+
+    def _autocast(self):
+        enabled = self.config.train.amp and self.device.type == "cuda"
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=enabled)
+
+    def _gbuffer_pass(self, views, textures, message, background, attack=None):
+        """Marked and original pictures of the baked `views` and the decoder's logits."""
+        from .training.gbuffer import composite
+
+        texture = textures.float() / 255.0
+        with self._autocast():
+            marked = self.model.texture_encoder(texture, message).float()
+        picture = composite(marked, views, background)
+        with torch.no_grad():
+            original = composite(texture, views, background)
+        seen = picture if attack is None else attack(picture, self.generator)
+        with self._autocast():
+            logits = self.model.decode(seen).float()
+        return texture, marked, original, picture, logits
+
+    def _gbuffer_step(self, index, message, distorting: bool):
+        cfg, weights, bank = self.config.train, self.config.loss, self.views
+        n = index.shape[0]
+        views = bank["train"][index]
+        background = (random_backgrounds(n, self.generator) if cfg.background == "random" else torch.zeros(n, 3))
+        attack = Distortions2D(cfg.distortion_2d) if distorting and cfg.distortion_2d > 0 else None
+        texture, marked, original, picture, logits = self._gbuffer_pass(
+            views, bank["train_textures"][views.item], message, background.to(self.device, non_blocking=True), attack)
+        texture_term = (marked - texture).abs().mean()
+        image_term = (picture - original).abs().mean()
+        loss = (weights.message * message_loss(logits, message) + self.texture_weight * texture_term
+                + self.image_weight * image_term)
+        stats = {"psnr_render": psnr(picture.detach(), original).mean(),
+                 "psnr_texture": psnr(marked.detach(), texture).mean(), "stage": 2}
+        return loss, logits, stats
+
+    @torch.no_grad()
+    def validate_gbuffers(self) -> dict:
+        """Bit accuracy and visibility on the baked test views (the first `val_meshes` test meshes)."""
+        bank, was_training = self.views, self.model.training
+        self.model.eval()
+        generator = torch.Generator().manual_seed(self.config.seed + 1_000_003)
+        rows = {"bit_acc": [], "psnr_render": [], "ssim_render": [], "psnr_texture": []}
+        for start in range(0, len(bank["test"]), self.config.train.batch_size):
+            views = bank["test"][start:start + self.config.train.batch_size]
+            n = len(views)
+            message = torch.randint(0, 2, (n, self.model.n_bits), generator=generator).float().to(self.device)
+            texture, marked, original, picture, logits = self._gbuffer_pass(
+                views, bank["test_textures"][views.item], message, torch.zeros(n, 3, device=self.device))
+            rows["bit_acc"].append(bit_accuracy(logits, message))
+            rows["psnr_render"].append(psnr(picture, original))
+            rows["ssim_render"].append(ssim(picture, original))
+            rows["psnr_texture"].append(psnr(marked, texture))
+        self.model.train(was_training)
+        return {name: float(torch.cat(values).mean()) for name, values in rows.items()}
 
     def _start_from(self, path: Path) -> None:
         """Weights of another run (the paper's Table 8: a texture encoder trained on images alone)."""
@@ -337,7 +456,7 @@ class Trainer:
     def train_step(self, batch) -> dict[str, float]:
         cfg, weights = self.config.train, self.config.loss
         self.model.train()
-        n = batch["positions"].shape[0]
+        n = batch.shape[0] if torch.is_tensor(batch) else batch["positions"].shape[0]
         message = torch.randint(0, 2, (n, self.model.n_bits), generator=self.generator).float().to(self.device)
         distorting = self.step >= cfg.distortion_start
         ramp = self._ramp()
@@ -345,6 +464,8 @@ class Trainer:
         self._set_learning_rate()
         stats: dict[str, float] = {}
         if self.step < cfg.pretrain_steps and self.model.texture_encoder is not None:
+            if self.views is not None:  # stage 1 reads the items' own textures
+                batch = {"texture": self.views["train_textures"][self.views["train"].item[batch]].float() / 255.0}
             marked = self.model.texture_encoder(batch["texture"], message)
             views = texture_views(marked, self.model.config.frame_size, self.generator)
             if distorting and cfg.distortion_2d > 0:
@@ -355,6 +476,19 @@ class Trainer:
             stats["psnr_texture"] = float(psnr(marked.detach(), batch["texture"]).mean())
             self.texture_weight = self._dual(self.texture_weight, cfg.target_psnr_texture, stats["psnr_texture"])
             stats["stage"] = 1
+        elif self.views is not None:
+            loss, logits, more = self._gbuffer_step(batch, message, distorting)
+            stats.update(more)
+            measured = torch.stack([more["psnr_render"], more["psnr_texture"]]).detach()
+            self._pending_psnr = measured if self._pending_psnr is None else self._pending_psnr + measured
+            self._pending_count += 1
+            if self._pending_count >= self._log_every():  # dual ascent on the window's mean: one round trip
+                mean_render, mean_texture = (self._pending_psnr / self._pending_count).tolist()
+                for _ in range(self._pending_count):
+                    self.image_weight = self._dual(self.image_weight, cfg.target_psnr, mean_render)
+                    self.texture_weight = self._dual(self.texture_weight, cfg.target_psnr_texture, mean_texture)
+                self._pending_psnr, self._pending_count = None, 0
+            stats["image_weight"] = self.image_weight
         else:
             background = (random_backgrounds(n, self.generator) if cfg.background == "random" else torch.zeros(n, 3))
             out = run_pass(self.model, batch, message, self.renderer, self.generator, cfg.render_size, cfg.sampler,
@@ -378,8 +512,12 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
-        stats.update(loss=float(loss.detach()), bit_acc=float(bit_accuracy(logits.detach(), message).mean()))
-        return stats
+        stats.update(loss=loss.detach(), bit_acc=bit_accuracy(logits.detach(), message).mean())
+        return stats  # tensors stay on the device until `fit` logs them
+
+    def _log_every(self) -> int:
+        every = self.config.train.log_every
+        return every if every > 0 else (50 if self.device.type == "cuda" else 1)
 
     # -------------------------------------------------------- loop
     def fit(self) -> dict:
@@ -404,31 +542,41 @@ class Trainer:
         for path in (log_path, val_path):  # a resumed run drops rows logged after its checkpoint
             lines = path.read_text().splitlines(keepends=True)
             path.write_text("".join(lines[:1] + [line for line in lines[1:] if int(line.split(",")[0]) <= self.step]))
-        batches = self._batches()
+        batches = self._view_batches() if self.views is not None else self._batches()
         start = time.time() - self.elapsed
         recent: list[float] = []
+        pending: list[tuple[int, dict]] = []  # rows not yet logged: their figures are still on the device
         bar = tqdm(total=cfg.steps, initial=self.step, desc=self.config.name, unit="step", dynamic_ncols=True)
         stopped_early = False
+        every = self._log_every()
         while self.step < cfg.steps:
             stats = self.train_step(next(batches))
             self.step += 1
             self.elapsed = time.time() - start
-            recent = (recent + [stats["bit_acc"]])[-50:]
+            pending.append((self.step, stats))
             bar.update(1)
-            bar.set_postfix(acc=f"{sum(recent) / len(recent):.3f}", psnr=f"{stats.get('psnr_render', float('nan')):.1f}",
-                            stage=stats["stage"])
-            with open(log_path, "a", newline="") as stream:
-                csv.writer(stream).writerow([self.step, stats["stage"], f"{stats['loss']:.5f}", f"{stats['bit_acc']:.4f}",
-                                             f"{stats.get('psnr_render', float('nan')):.3f}",
-                                             f"{stats.get('psnr_texture', float('nan')):.3f}",
-                                             f"{stats.get('image_weight', self.image_weight):.4f}", f"{self.elapsed:.1f}"])
             last = self.step >= cfg.steps
             if cfg.time_limit_minutes is not None and self.elapsed > 60 * cfg.time_limit_minutes:
                 stopped_early = last = True
+            if len(pending) >= every or last or self.step % cfg.val_every == 0 or self.step % cfg.checkpoint_every == 0:
+                names = ("loss", "bit_acc", "psnr_render", "psnr_texture")
+                values = torch.stack([torch.as_tensor(row.get(name, float("nan")), dtype=torch.float32,
+                                                      device=self.device).reshape(()) for _, row in pending
+                                      for name in names]).reshape(len(pending), len(names)).tolist()  # one round trip
+                with open(log_path, "a", newline="") as stream:
+                    for (step, row), (loss, acc, p_render, p_texture) in zip(pending, values):
+                        recent = (recent + [acc])[-50:]
+                        csv.writer(stream).writerow([step, row["stage"], f"{loss:.5f}", f"{acc:.4f}", f"{p_render:.3f}",
+                                                     f"{p_texture:.3f}", f"{row.get('image_weight', self.image_weight):.4f}",
+                                                     f"{self.elapsed:.1f}"])
+                bar.set_postfix(acc=f"{sum(recent) / len(recent):.3f}", psnr=f"{values[-1][2]:.1f}",
+                                stage=pending[-1][1]["stage"])
+                pending = []
             if self.step % cfg.val_every == 0 or last:
-                metrics = evaluate(self.model, self.val_set, n_meshes=cfg.val_meshes, views=1, seed=self.config.seed,
-                                   render_size=cfg.render_size, sampler=cfg.sampler, batch_size=cfg.batch_size,
-                                   unrender_jitter=cfg.unrender_jitter)
+                metrics = self.validate_gbuffers() if self.views is not None else evaluate(
+                    self.model, self.val_set, n_meshes=cfg.val_meshes, views=1, seed=self.config.seed,
+                    render_size=cfg.render_size, sampler=cfg.sampler, batch_size=cfg.batch_size,
+                    unrender_jitter=cfg.unrender_jitter)
                 with open(val_path, "a") as stream:
                     stream.write(f"{self.step},{metrics['bit_acc']:.4f},{metrics['psnr_render']:.3f},"
                                  f"{metrics['ssim_render']:.4f},{metrics['psnr_texture']:.3f},{self.elapsed:.1f}\n")

@@ -1,0 +1,72 @@
+"""Cached G-buffers (meshseal.training.gbuffer): a baked view composited with a texture is the render."""
+
+import math
+
+import pytest
+import torch
+import trimesh
+
+from meshseal.framing import BOX_MARGIN
+from meshseal.pipeline import sample_views
+from meshseal.render import MeshBatch, MeshRenderer
+from meshseal.training.gbuffer import GBuffers, bake_views, composite
+
+
+def _spheres(n: int) -> dict:
+    sphere = trimesh.creation.icosphere(3)
+    p = torch.tensor(sphere.vertices, dtype=torch.float32)
+    normals = torch.tensor(sphere.vertex_normals, dtype=torch.float32)
+    uv = torch.stack([torch.atan2(p[:, 1], p[:, 0]) / (2 * math.pi) + 0.5, torch.acos(p[:, 2].clamp(-1, 1)) / math.pi], -1)
+    faces = torch.tensor(sphere.faces, dtype=torch.long)
+    scale = torch.linspace(0.6, 1.0, n)[:, None, None]
+    return {"positions": p[None] * scale, "normals": normals[None].repeat(n, 1, 1), "uvs": 3 * uv[None].repeat(n, 1, 1),
+            "faces": faces[None].repeat(n, 1, 1), "n_verts": torch.full((n,), len(p))}
+
+
+@pytest.mark.parametrize("sampler", ["seed", "any"])
+def test_composite_of_a_baked_view_is_the_hard_render(sampler):
+    generator = torch.Generator().manual_seed(1)
+    batch = _spheres(3)
+    cameras, lights = sample_views(3, sampler, generator)
+    texture = torch.rand(3, 3, 24, 40, generator=generator)  # not square, uvs beyond [0, 1]: REPEAT wrapping
+    background = torch.rand(3, 3, generator=generator)
+    buffers = bake_views(batch, cameras, lights, 96, framed=False)
+    picture = composite(texture, buffers, background)
+    render = MeshRenderer(blend="hard")(MeshBatch.from_tensors(batch["positions"], batch["normals"], batch["uvs"],
+                                                               batch["faces"], texture), cameras, lights, 96, 96,
+                                        background).image
+    assert buffers.mask.any() and not buffers.mask.all()
+    assert (picture - render).abs().max() < 1e-4
+    # and it is differentiable in the texture
+    texture.requires_grad_(True)
+    composite(texture, buffers, background).sum().backward()
+    assert texture.grad.abs().sum() > 0
+
+
+def test_framed_views_fill_the_frame_as_detect_frames_a_picture():
+    generator = torch.Generator().manual_seed(2)
+    batch = _spheres(2)
+    cameras, lights = sample_views(2, "seed", generator)
+    loose = bake_views(batch, cameras, lights, 128, framed=False)
+    framed = bake_views(batch, cameras, lights, 128, framed=True)
+    assert framed.mask.float().mean() > 3 * loose.mask.float().mean()
+    for mask in framed.mask:
+        rows = torch.nonzero(mask.any(1)).squeeze(1)
+        cols = torch.nonzero(mask.any(0)).squeeze(1)
+        extent = max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1
+        margin = 128 * BOX_MARGIN / (1 + 2 * BOX_MARGIN)  # the box's margin, in frame pixels
+        assert abs(128 - extent - 2 * margin) <= 3
+        assert abs(int(rows[0]) - margin) <= 2 or abs(int(cols[0]) - margin) <= 2
+
+
+def test_gbuffers_save_and_load_round_trip(tmp_path):
+    generator = torch.Generator().manual_seed(3)
+    batch = _spheres(2)
+    cameras, lights = sample_views(2, "seed", generator)
+    buffers = bake_views(batch, cameras, lights, 40, framed=True)
+    buffers = GBuffers(buffers.uv.half(), buffers.shade.half(), buffers.mask, torch.tensor([4, 7]))
+    buffers.save(tmp_path / "bank.npz", {"views": 1})
+    loaded, meta = GBuffers.load(tmp_path / "bank.npz")
+    assert meta == {"views": 1}
+    assert torch.equal(loaded.mask, buffers.mask) and torch.equal(loaded.item, buffers.item)
+    assert torch.equal(loaded.uv, buffers.uv) and torch.equal(loaded.shade, buffers.shade)
