@@ -479,6 +479,16 @@ def _special_cases(c: Corpus, base: dict) -> None:
         folder = c.files("special", name, files)
         make(folder)
         _mesh_runs(c, "special", name, folder, "sphere.obj")
+    for name, link in {"texture_symlink_loop": "skin.png", "mtl_symlink_loop": "skin.mtl"}.items():
+        files = {"sphere.obj": obj, "skin.mtl": mtl, "skin.png": base["png"]}
+        files.pop(link)
+        folder = c.files("special", name, files)
+        os.symlink(link, folder / link)  # a link to itself: resolving it loops
+        _mesh_runs(c, "special", name, folder, "sphere.obj")
+    folder = c.files("special", "empty_message", {"m.glb": base["glb"]})
+    for case, text in {"empty_message": "", "blank_message": "  "}.items():
+        c.run("special", case, "bad argument", "embed",
+              ["embed", folder / "m.glb", "-o", "{out}/marked.glb", "--message", text, "--views", 1], "error", folder)
     gltf = dict(base["gltf"])
     model = gltf.pop("model.gltf")
     bin_name = json.loads(model)["buffers"][0]["uri"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from contextlib import closing
 from pathlib import Path
@@ -242,13 +243,16 @@ def run_embed(args) -> int:
     from ..mesh import load as load_mesh, save
     from ..mesh.io import check_output
 
+    if args.message is not None and not args.message.strip():
+        raise MeshsealError("--message is empty (or only spaces): give the text to hide (the default model holds 4 bytes), "
+                            "or an asset ID with --id")
     watermarker = load(args.model)
     mesh = load_mesh(args.input, up_axis=args.up)
     check_output(args.output, mesh.source.input_files)
     if args.preview is not None:
         if args.views == 0:
             raise MeshsealError("--preview shows a render: give --views 1 or more")
-        if args.preview.resolve() == args.output.resolve():
+        if os.path.realpath(args.preview) == os.path.realpath(args.output):
             raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
         check_output(args.preview, mesh.source.input_files)
     key = _key(args)

@@ -29,7 +29,7 @@ from ..errors import MeshError
 from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, Material, Mesh
 from .preprocess import vertex_normals
 from .validate import (check_glb, check_gltf, check_images, check_obj, check_off, check_ply, check_stl,
-                       find_asset, read_regular, regular_file)
+                       find_asset, read_regular, regular_file, resolved)
 
 SUPPORTED = {".obj": "obj", ".glb": "glb", ".gltf": "gltf", ".ply": "ply", ".off": "off", ".stl": "stl"}
 TEXT_FORMATS = {"obj", "off", "gltf"}
@@ -170,7 +170,7 @@ def load(path, up_axis: str | None = None) -> Mesh:
         raise MeshError(f"{path}: file is empty")
     if file_type in TEXT_FORMATS and b"\x00" in data[:1 << 16]:
         raise MeshError(f"{path}: binary data, not a text {file_type.upper()} file")
-    input_files = {path.resolve()}
+    input_files = {resolved(path, 'mesh file')}
     images: list = []
     if file_type == "obj":
         check_obj(path, data)
@@ -198,7 +198,7 @@ def load(path, up_axis: str | None = None) -> Mesh:
             detail = "not UTF-8 text (install charset-normalizer to read other text encodings)"
         raise MeshError(f"{path}: cannot read as {file_type.upper()}: {detail[:200]}") from None
     if file_type == "gltf":
-        input_files |= {p.resolve() for p in path.parent.iterdir() if p.suffix.lower() in
+        input_files |= {resolved(p) for p in path.parent.iterdir() if p.suffix.lower() in
                         {".bin", ".png", ".jpg", ".jpeg", ".webp"}}
     return _from_scene(scene, path, file_type, input_files, up_axis or UP_AXIS[file_type])
 
@@ -399,8 +399,8 @@ def check_output(path: Path, inputs=()) -> None:
     for source in inputs:
         try:
             same = path.resolve() == Path(source).resolve() or os.path.samefile(path, source)
-        except OSError:  # the output does not exist yet (or the input is gone): not the same file
-            same = False
+        except (OSError, RuntimeError):  # the output does not exist yet (or the input is gone, or the
+            same = False  # output is a symbolic link loop, replaced by the file): not the same file
         if same:
             raise MeshError(f"{path}: refusing to overwrite an input file ({Path(source).name}); "
                             f"choose another output path")

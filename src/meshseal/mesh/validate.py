@@ -48,6 +48,17 @@ def regular_file(path: Path, what: str = "file") -> os.stat_result:
     return info
 
 
+def resolved(path: Path, what: str = "file") -> Path:
+    """`Path.resolve()`, with a symbolic link loop (a RuntimeError or OSError from pathlib) raised as a
+    one-line MeshError naming the path."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError) as error:
+        detail = "is a symbolic link loop" if "loop" in str(error).lower() or getattr(error, "errno", None) == 40 \
+            else f"cannot be resolved ({getattr(error, 'strerror', None) or error})"
+        raise MeshError(f"{path}: {detail}; cannot read {what}") from None
+
+
 def read_regular(path: Path, what: str = "file") -> bytes:
     """The bytes of a regular file (see `regular_file`)."""
     regular_file(path, what)
@@ -61,9 +72,9 @@ def find_asset(folder: Path, name: str) -> Path | None:
     """The file trimesh's resolver opens for an asset `name` (an MTL, a texture, a glTF buffer or image)
     referenced from a file in `folder`: the name, then without a leading '/', then its base name, inside
     `folder` only (trimesh refuses paths that lead out of it). None when there is none."""
-    root = folder.resolve()
+    root = resolved(folder, "folder")
     for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
-        path = (root / candidate.strip()).resolve()
+        path = resolved(root / candidate.strip(), f"file '{name.strip()}'")
         if path.is_relative_to(root) and path.exists():
             return path
     return None
@@ -542,8 +553,8 @@ class _Gltf:
                 self.fail(f"{what}: malformed base64 data URI")
         if re.match(r"[A-Za-z][A-Za-z0-9+.-]+:", uri):
             self.fail(f"{what}: uri '{uri[:60]}' is not a file beside the glTF; only those are read")
-        root = base.resolve()
-        target = (root / uri.strip()).resolve()
+        root = resolved(base, "folder")
+        target = resolved(root / uri.strip(), f"file ({what} of {self.path.name})")
         if not target.is_relative_to(root):
             self.fail(f"{what}: uri '{uri[:60]}' leads outside the glTF's folder; only files in it are read")
         if optional and not os.path.lexists(target):
