@@ -5,7 +5,8 @@ Each subcommand lives in a module with `register(subparsers)`; that function add
 of the package can add commands without touching this file.
 
 Exit codes: 0 success, 1 the command reported failure, 2 bad input or arguments, 130 interrupted.
-Set MESHSEAL_DEBUG=1 to get the full traceback instead of the one-line error.
+Set MESHSEAL_DEBUG=1 to get the full traceback instead of the one-line error. Before a command runs, the
+thread policy of `meshseal.threads` is applied (MESHSEAL_THREADS=N sets the count).
 """
 
 from __future__ import annotations
@@ -76,6 +77,9 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "func", None) is None:
             parser.print_help(sys.stderr)
             return 2
+        from .threads import configure
+
+        configure()  # thread counts and passive waits, before the command imports torch or numba
         result = args.func(args)
         return int(result or 0)
     except SystemExit as exit_:  # --help, --version

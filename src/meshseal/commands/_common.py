@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from ..threads import available_cores  # noqa: F401 (the subcommands import it from here)
+
 
 def vector3(text: str) -> tuple[float, float, float]:
     """'X,Y,Z' -> three finite floats (argparse type)."""
@@ -31,11 +33,6 @@ def colour(text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
-def available_cores() -> int:
-    """The CPU cores this process may run on."""
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def positive_int(limit: int, minimum: int = 1):

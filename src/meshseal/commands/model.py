@@ -407,11 +407,13 @@ def _readings(args, watermarker, original, paths: list[Path], workers: int):
     import multiprocessing
     import os
 
+    from ..threads import worker_environment
+
     # Spawned, not forked: a fork after torch or numba started their threads can deadlock. One thread
     # per worker, set before the children import anything: thread pools of several processes spinning
-    # against each other on the same cores cost many times the work.
+    # against each other on the same cores cost many times the work (meshseal.threads).
     saved = dict(os.environ)
-    os.environ.update({name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
+    os.environ.update(worker_environment())
     try:
         pool = multiprocessing.get_context("spawn").Pool(
             workers, _worker_start, (args.model, None if original is None else str(args.mesh)))
@@ -439,11 +441,11 @@ _WORKER: dict = {}
 
 
 def _worker_start(model, mesh) -> None:
-    import torch
+    from ..threads import configure
 
+    configure(worker=True)
     from ..api import load
 
-    torch.set_num_threads(1)
     watermarker = load(model)
     _WORKER.update(watermarker=watermarker, original=None if mesh is None else watermarker.original(mesh))
 
@@ -522,8 +524,13 @@ def run_train(args) -> int:
     if args.time_limit is not None:
         config.train.time_limit_minutes = args.time_limit
     out = args.out or Path("runs") / config.name
-    summary = Trainer(config, out, resume=args.resume, device=_train_device(args.device)).fit()
-    print(json.dumps(summary | {"out": str(out)}))
+    trainer = Trainer(config, out, resume=args.resume, device=_train_device(args.device))
+    summary = trainer.fit()
+    from ..training.distributed import leave
+
+    leave(trainer.world)
+    if trainer.world.main:
+        print(json.dumps(summary | {"out": str(out)}))
     return 0
 
 

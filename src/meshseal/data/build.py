@@ -33,12 +33,15 @@ import numpy as np
 from PIL import Image
 
 from ..errors import MeshError, MeshsealError
+from ..threads import configure as configure_threads
 from . import sources as S
 from .formats import MESH_SUFFIXES, RawMesh, read_image, read_mesh
 from .process import ProcessOptions, process_mesh, resize
 
 # Workers are spawned, not forked: a fork after torch/numba started their threads can deadlock.
 _SPAWN = multiprocessing.get_context("spawn")
+# One thread a worker, set before it imports torch or numba (meshseal.threads): the pool has a worker per core.
+_ONE_THREAD = {"initializer": configure_threads, "initargs": (None, True)}
 
 FORMAT_VERSION = 1
 CC0 = {"CC0-1.0", "CC0", "public-domain"}
@@ -291,7 +294,7 @@ def build_pool(out: Path, candidates: list[S.TextureCandidate], size: int, pool_
     rows: list[dict] = []
     start = 0
     progress = _progress(min(pool_size, len(ordered)), "texture pool")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=_SPAWN) as executor:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=_SPAWN, **_ONE_THREAD) as executor:
         while len(rows) < pool_size and start < len(ordered):
             chunk = ordered[start:start + max(32, int((pool_size - len(rows)) * 1.3))]
             start += len(chunk)
@@ -388,7 +391,7 @@ def build(out, *, sources=S.DEFAULT_SOURCES, texture_sources=S.DEFAULT_TEXTURE_S
     new_failures: dict[str, str] = {}
     if todo:
         progress = _progress(len(todo), "meshes")
-        with ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=_SPAWN) as executor, \
+        with ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=_SPAWN, **_ONE_THREAD) as executor, \
                 open(failed_file, "a") as failed_log:
             futures = [executor.submit(mesh_worker, a.to_dict(), options, str(out), pool_paths, seed) for a in todo]
             for future in as_completed(futures):

@@ -1,0 +1,103 @@
+"""How many threads meshseal's work may use, and the settings that keep its thread pools from spinning
+on cores other jobs are using.
+
+torch's intra-op pool (OpenMP), MKL and numba's parallel kernels (its own OpenMP runtime, a second one)
+each start one thread per core and, by default, keep idle threads spinning at every barrier. A
+picture's work is thousands of small parallel operations; beside another busy process every one of them
+waits for the thread that shares a core with it, and the spinning threads take that core's time too:
+many times the work. The policy:
+
+- one process (the command line, a script): as many threads as the cores this process may run on
+  (`os.sched_getaffinity`) that other jobs are not already keeping busy (the load average and the
+  number of runnable tasks now, whichever is higher), at least one;
+- each worker of a pool: one thread (the pool has one worker per core);
+- idle threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, `KMP_BLOCKTIME=0`);
+- a count the user gives wins: `MESHSEAL_THREADS`, else `OMP_NUM_THREADS`.
+
+`configure()` writes the settings into the environment, which the OpenMP runtimes, MKL and numba read
+when they start; call it before torch and numba are imported (the command line does, first thing).
+Where they are already imported it also sets their thread counts directly (`torch.set_num_threads`,
+`numba.set_num_threads`, up to the pool numba started with).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+ENV = "MESHSEAL_THREADS"
+_COUNTS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+_PASSIVE = {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def busy_cores() -> float:
+    """Cores other jobs keep busy: the one-minute load average or the tasks runnable now (less this
+    one), whichever is higher; 0 where the system does not say."""
+    try:
+        with open("/proc/loadavg") as file:
+            fields = file.read().split()
+        load, runnable = float(fields[0]), int(fields[3].split("/")[0]) - 1
+    except (OSError, ValueError, IndexError):
+        try:
+            load, runnable = os.getloadavg()[0], 0
+        except OSError:
+            return 0.0
+    return max(load, float(runnable), 0.0)
+
+
+def requested() -> int | None:
+    """The thread count the user set (`MESHSEAL_THREADS`, else `OMP_NUM_THREADS`), or None."""
+    for name in (ENV, "OMP_NUM_THREADS"):
+        text = os.environ.get(name, "").strip()
+        if text:
+            try:
+                value = int(text)
+            except ValueError:
+                continue
+            if value >= 1:
+                return value
+    return None
+
+
+def policy_threads(worker: bool = False) -> int:
+    """Threads for one process: 1 in a pool's worker, else the user's count, else the cores this
+    process may use that other jobs leave free (at least 1)."""
+    if worker:
+        return 1
+    given = requested()
+    if given is not None:
+        return given
+    cores = available_cores()
+    return max(1, min(cores, cores - int(busy_cores() + 0.5)))
+
+
+def configure(threads: int | None = None, worker: bool = False) -> int:
+    """Apply the policy to this process (and the processes it starts, through the environment);
+    returns the thread count. `threads` overrides the policy's count."""
+    n = int(threads) if threads is not None else policy_threads(worker)
+    for name, value in _PASSIVE.items():
+        os.environ.setdefault(name, value)
+    own = worker or threads is not None or bool(os.environ.get(ENV, "").strip())
+    for name in _COUNTS:
+        if own or not os.environ.get(name, "").strip():
+            os.environ[name] = str(n)
+    if "torch" in sys.modules:
+        import torch
+
+        torch.set_num_threads(n)
+    if "numba" in sys.modules:
+        import numba
+
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    return n
+
+
+def worker_environment() -> dict[str, str]:
+    """The environment settings a spawned pool worker needs before it imports anything: one thread,
+    idle threads asleep."""
+    return {**{name: "1" for name in _COUNTS}, ENV: "1", **{k: os.environ.get(k, v) for k, v in _PASSIVE.items()}}

@@ -1,0 +1,87 @@
+"""The thread policy (meshseal.threads): how many threads a process and a pool's worker use, what the
+user's settings change, and that torch and numba start with it."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from meshseal import threads
+
+PROBE = """
+import json, os, sys
+from meshseal import threads
+n = threads.configure(worker=%r)
+import numba, torch
+numba.njit(parallel=True)(lambda x: x.sum())(__import__("numpy").ones(4))
+print(json.dumps({"n": n, "torch": torch.get_num_threads(), "numba": numba.get_num_threads(),
+                  "wait": os.environ.get("OMP_WAIT_POLICY")}))
+"""
+
+
+def run_probe(worker: bool, **env) -> dict:
+    environment = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                                                                    "NUMBA_NUM_THREADS", threads.ENV)}
+    out = subprocess.run([sys.executable, "-c", PROBE % (worker,)], env=environment | env, capture_output=True,
+                         text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_a_pool_worker_uses_one_thread_whatever_the_machine(monkeypatch):
+    monkeypatch.setenv(threads.ENV, "8")
+    assert threads.policy_threads(worker=True) == 1
+
+
+@pytest.mark.parametrize("cores, busy, expected", [(2, 0.0, 2), (2, 0.4, 2), (2, 1.0, 1), (2, 5.0, 1),
+                                                   (8, 3.2, 5), (1, 0.0, 1)])
+def test_a_process_uses_the_cores_other_jobs_leave_free(monkeypatch, cores, busy, expected):
+    for name in ("OMP_NUM_THREADS", threads.ENV):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(threads, "available_cores", lambda: cores)
+    monkeypatch.setattr(threads, "busy_cores", lambda: busy)
+    assert threads.policy_threads() == expected
+
+
+def test_the_users_count_wins(monkeypatch):
+    monkeypatch.setattr(threads, "busy_cores", lambda: 50.0)
+    monkeypatch.delenv(threads.ENV, raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert threads.policy_threads() == 3
+    monkeypatch.setenv(threads.ENV, "2")
+    assert threads.policy_threads() == 2
+    monkeypatch.setenv(threads.ENV, "nonsense")
+    assert threads.policy_threads() == 3
+
+
+def test_busy_cores_reads_the_system():
+    assert threads.busy_cores() >= 0.0
+    assert threads.available_cores() >= 1
+
+
+def test_torch_and_numba_start_with_the_policy():
+    worker = run_probe(True)
+    assert worker == {"n": 1, "torch": 1, "numba": 1, "wait": "PASSIVE"}
+    given = run_probe(False, MESHSEAL_THREADS="1", OMP_WAIT_POLICY="ACTIVE")
+    assert given == {"n": 1, "torch": 1, "numba": 1, "wait": "ACTIVE"}  # the user's wait policy stays
+
+
+def test_the_command_line_applies_the_policy_before_the_command(monkeypatch, capsys):
+    from meshseal.cli import main
+
+    calls = []
+    monkeypatch.setattr(threads, "configure", lambda *a, **k: calls.append("configure") or 1)
+    import meshseal.commands.model as model
+
+    monkeypatch.setattr(model, "run_models", lambda args: calls.append("run") or 0)
+    main(["models", "--json"])
+    assert calls == ["configure", "run"]
+
+
+def test_worker_environment_is_one_thread():
+    environment = threads.worker_environment()
+    assert all(environment[name] == "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"))
+    assert environment["OMP_WAIT_POLICY"] in ("PASSIVE", os.environ.get("OMP_WAIT_POLICY"))
