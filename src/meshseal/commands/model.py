@@ -524,13 +524,8 @@ def run_train(args) -> int:
     if args.time_limit is not None:
         config.train.time_limit_minutes = args.time_limit
     out = args.out or Path("runs") / config.name
-    trainer = Trainer(config, out, resume=args.resume, device=_train_device(args.device))
-    summary = trainer.fit()
-    from ..training.distributed import leave
-
-    leave(trainer.world)
-    if trainer.world.main:
-        print(json.dumps(summary | {"out": str(out)}))
+    summary = Trainer(config, out, resume=args.resume, device=_train_device(args.device)).fit()
+    print(json.dumps(summary | {"out": str(out)}))
     return 0
 
 
