@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -129,6 +130,34 @@ def test_gbuffer_path_can_be_turned_off_and_refuses_models_it_cannot_serve(datas
     assert Trainer(_config(dataset, steps=1), tmp_path / "vertex", log=quiet).views is None  # vertex+texture
     with pytest.raises(MeshsealError, match="gbuffer: on"):
         Trainer(_config(dataset, gbuffer="on"), tmp_path / "on", log=quiet)
+
+
+def test_two_processes_under_torchrun_train_as_one_at_the_same_global_batch(dataset, tmp_path):
+    """Data-parallel training (gloo on the CPU): each process takes half of every global batch, the
+    gradients are averaged and batch normalisation sees the global batch, so two processes end with
+    the weights one process reaches."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    config = _texture_config(dataset, steps=3, batch_size=4, pretrain_steps=0, distortion_2d=0.0, val_every=3,
+                             checkpoint_every=3)
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(config.to_dict()))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+    train = ["-m", "meshseal.cli", "train", "--config", str(path), "--device", "cpu", "--out"]
+    subprocess.run([sys.executable, *train, str(tmp_path / "one")], check=True, env=env, capture_output=True)
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           *train, str(tmp_path / "two")], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count('"steps": 3') == 1  # one process reports
+    one, two = load_file(str(tmp_path / "one" / "model.safetensors")), load_file(str(tmp_path / "two" / "model.safetensors"))
+    assert one.keys() == two.keys()
+    for key in one:
+        assert torch.allclose(one[key].float(), two[key].float(), atol=1e-5), key
+    log = lambda run: [r.split(",")[:3] for r in (tmp_path / run / "log.csv").read_text().splitlines()]  # noqa: E731
+    assert len(log("two")) == 4
 
 
 def test_bad_configs_are_clear_errors(tmp_path):

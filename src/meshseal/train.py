@@ -32,6 +32,7 @@ from .models import ModelConfig, WatermarkModel
 from .models.io import save_model, save_tensors
 from .pipeline import random_backgrounds, run_pass
 from .render import MeshRenderer
+from .training.distributed import average, average_gradients
 
 FREEZABLE = ("texture_encoder", "vertex_encoder", "decoder")
 
@@ -69,6 +70,7 @@ class TrainSettings:
     val_every: int = 250
     val_meshes: int = 32
     checkpoint_every: int = 250
+    checkpoint_minutes: float | None = None  # also checkpoint this often (runs on short device leases)
     time_limit_minutes: float | None = None
     retexture: float = 0.0
     texture_kinds: list | None = None  # only items whose texture is of these kinds (own | real | noise)
@@ -207,7 +209,11 @@ class Trainer:
     def __init__(self, config: TrainConfig, out_dir, resume: bool = False, device: str = "cpu", log=print):
         from .data.dataset import MeshDataset
 
-        self.config, self.out, self.device, self.log = config, Path(out_dir), torch.device(device), log
+        from .training.distributed import join
+
+        self.world, device = join(device)
+        self.config, self.out, self.device = config, Path(out_dir), torch.device(device)
+        self.log = log if self.world.main else (lambda *_: None)
         self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
@@ -239,6 +245,8 @@ class Trainer:
         self.position = (0, 0)  # (epoch, offset) of the next batch
         self.elapsed = 0.0
         self.views = self._view_banks() if self._uses_gbuffers() else None
+        if self.world.distributed:
+            self._check_distributed()
         self._pending_psnr, self._pending_count = None, 0  # G-buffer steps' PSNRs since the last dual update
         if resume and (self.out / "checkpoint.safetensors").is_file():
             self._restore()
@@ -255,6 +263,19 @@ class Trainer:
             raise MeshsealError("gbuffer: on needs a texture-only model with a learned encoder and a blind decoder")
         return mode != "off" and applies
 
+    def _check_distributed(self) -> None:
+        """Several processes: the G-buffer path (every process draws the same numbers for the whole
+        batch), an even split of the batch, batch normalisation over the global batch."""
+        from .training.distributed import global_batch_norm
+
+        cfg, world = self.config.train, self.world
+        if self.views is None or cfg.pretrain_steps > 0:
+            raise MeshsealError("training in several processes needs the G-buffer path (a texture-only blind model) "
+                                "and pretrain_steps 0")
+        if cfg.batch_size % world.size:
+            raise MeshsealError(f"batch_size {cfg.batch_size} does not split evenly over {world.size} processes")
+        global_batch_norm(self.model)
+
     def _view_banks(self) -> dict:
         """The train and test views, baked once into `<data>/gbuffers/` and kept on the training device,
         with the items' textures (uint8) beside them."""
@@ -267,12 +288,16 @@ class Trainer:
         train = cached_bake(self.train_set.dataset, folder / bake_key("train", cfg.texture_kinds, cfg.gbuffer_views, size,
                                                                      cfg.sampler, self.config.seed, cfg.distortion_3d),
                             cfg.gbuffer_views, size, cfg.sampler, self.config.seed, distort, self.log)
+        if self.world.distributed and not self.world.main:
+            torch.distributed.barrier()  # the main process bakes; the others read its files
         val_views = min(len(self.val_set), cfg.val_meshes)
         val_set = torch.utils.data.Subset(self.val_set, range(val_views))
         val_set.rows = self.val_set.rows[:val_views]
         test = cached_bake(val_set, folder / bake_key("test", cfg.texture_kinds, 1, size, cfg.sampler,
                                                       self.config.seed + 1_000_003, 0.0),
                            1, size, cfg.sampler, self.config.seed + 1_000_003, None, self.log)
+        if self.world.distributed and self.world.main:
+            torch.distributed.barrier()
         as_bytes = lambda dataset, count: torch.stack([self._texture_bytes(dataset, i) for i in range(count)])  # noqa: E731
         return {"train": train.to(self.device), "test": test.to(self.device),
                 "train_textures": as_bytes(self.train_set, len(self.train_set)).to(self.device),
@@ -323,9 +348,10 @@ class Trainer:
     def _gbuffer_step(self, index, message, distorting: bool):
         cfg, weights, bank = self.config.train, self.config.loss, self.views
         n = index.shape[0]
-        views = bank["train"][index]
         background = (random_backgrounds(n, self.generator) if cfg.background == "random" else torch.zeros(n, 3))
         attack = Distortions2D(cfg.distortion_2d) if distorting and cfg.distortion_2d > 0 else None
+        share = self.world.share(n)  # this process's part of the global batch (all of it in one process)
+        views, message, background = bank["train"][index[share]], message[share], background[share]
         texture, marked, original, picture, logits = self._gbuffer_pass(
             views, bank["train_textures"][views.item], message, background.to(self.device, non_blocking=True), attack)
         texture_term = (marked - texture).abs().mean()
@@ -334,7 +360,7 @@ class Trainer:
                 + self.image_weight * image_term)
         stats = {"psnr_render": psnr(picture.detach(), original).mean(),
                  "psnr_texture": psnr(marked.detach(), texture).mean(), "stage": 2}
-        return loss, logits, stats
+        return loss, logits, stats, message
 
     @torch.no_grad()
     def validate_gbuffers(self) -> dict:
@@ -367,6 +393,8 @@ class Trainer:
 
     # -------------------------------------------------------- checkpoints
     def _checkpoint(self) -> None:
+        if not self.world.main:
+            return
         tensors = {f"model.{k}": v for k, v in self.model.state_dict().items()}
         tensors |= {f"optim.{k}": v for k, v in _optimizer_tensors(self.optimizer, self.parameters).items()}
         tensors["rng.generator"] = self.generator.get_state()
@@ -379,6 +407,8 @@ class Trainer:
 
     def _save_model(self) -> None:
         """The weights alone, usable by `meshseal eval/embed/detect --model` while training goes on."""
+        if not self.world.main:
+            return
         save_model(self.model, self.out / "model.safetensors",
                    {"name": self.config.name, "steps": self.step, "seed": self.config.seed,
                     "training_seconds": round(self.elapsed, 1), "train_config": self.config.to_dict()})
@@ -477,13 +507,13 @@ class Trainer:
             self.texture_weight = self._dual(self.texture_weight, cfg.target_psnr_texture, stats["psnr_texture"])
             stats["stage"] = 1
         elif self.views is not None:
-            loss, logits, more = self._gbuffer_step(batch, message, distorting)
+            loss, logits, more, message = self._gbuffer_step(batch, message, distorting)
             stats.update(more)
             measured = torch.stack([more["psnr_render"], more["psnr_texture"]]).detach()
             self._pending_psnr = measured if self._pending_psnr is None else self._pending_psnr + measured
             self._pending_count += 1
             if self._pending_count >= self._log_every():  # dual ascent on the window's mean: one round trip
-                mean_render, mean_texture = (self._pending_psnr / self._pending_count).tolist()
+                mean_render, mean_texture = average(self._pending_psnr / self._pending_count, self.world).tolist()
                 for _ in range(self._pending_count):
                     self.image_weight = self._dual(self.image_weight, cfg.target_psnr, mean_render)
                     self.texture_weight = self._dual(self.texture_weight, cfg.target_psnr_texture, mean_texture)
@@ -511,6 +541,7 @@ class Trainer:
             stats.update(psnr_render=batch_psnr, image_weight=self.image_weight, stage=2, psnr_texture=texture_psnr)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        average_gradients(self.parameters, self.world)
         self.optimizer.step()
         stats.update(loss=loss.detach(), bit_acc=bit_accuracy(logits.detach(), message).mean())
         return stats  # tensors stay on the device until `fit` logs them
@@ -531,24 +562,27 @@ class Trainer:
             summary = {"steps": 0, "elapsed_s": 0.0, "stopped_by_time_limit": False}
             (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
             return summary
+        main = self.world.main  # the one process that logs, validates and writes
         log_path = self.out / "log.csv"
         columns = ["step", "stage", "loss", "bit_acc", "psnr_render", "psnr_texture", "image_weight", "elapsed_s"]
-        if not log_path.exists() or self.step == 0:
+        if main and (not log_path.exists() or self.step == 0):
             with open(log_path, "w", newline="") as stream:
                 csv.writer(stream).writerow(columns)
         val_path = self.out / "val.csv"
-        if not val_path.exists() or self.step == 0:
+        if main and (not val_path.exists() or self.step == 0):
             val_path.write_text("step,bit_acc,psnr_render,ssim_render,psnr_texture,elapsed_s\n")
-        for path in (log_path, val_path):  # a resumed run drops rows logged after its checkpoint
+        for path in (log_path, val_path) if main else ():  # a resumed run drops rows logged after its checkpoint
             lines = path.read_text().splitlines(keepends=True)
             path.write_text("".join(lines[:1] + [line for line in lines[1:] if int(line.split(",")[0]) <= self.step]))
         batches = self._view_batches() if self.views is not None else self._batches()
         start = time.time() - self.elapsed
         recent: list[float] = []
         pending: list[tuple[int, dict]] = []  # rows not yet logged: their figures are still on the device
-        bar = tqdm(total=cfg.steps, initial=self.step, desc=self.config.name, unit="step", dynamic_ncols=True)
+        bar = tqdm(total=cfg.steps, initial=self.step, desc=self.config.name, unit="step", dynamic_ncols=True,
+                   disable=not main)
         stopped_early = False
         every = self._log_every()
+        saved_at = time.time()
         while self.step < cfg.steps:
             stats = self.train_step(next(batches))
             self.step += 1
@@ -556,9 +590,17 @@ class Trainer:
             pending.append((self.step, stats))
             bar.update(1)
             last = self.step >= cfg.steps
-            if cfg.time_limit_minutes is not None and self.elapsed > 60 * cfg.time_limit_minutes:
-                stopped_early = last = True
-            if len(pending) >= every or last or self.step % cfg.val_every == 0 or self.step % cfg.checkpoint_every == 0:
+            if cfg.time_limit_minutes is not None:
+                over = self.elapsed > 60 * cfg.time_limit_minutes
+                if self.world.distributed:  # several processes stop at the same step: they agree now and then
+                    over = self.step % every == 0 and float(average(torch.tensor([float(over)], device=self.device),
+                                                                        self.world)) > 0
+                if over:
+                    stopped_early = last = True
+            overdue = cfg.checkpoint_minutes is not None and time.time() - saved_at > 60 * cfg.checkpoint_minutes
+            if not main:
+                pending = []
+            elif len(pending) >= every or last or overdue or self.step % cfg.val_every == 0 or self.step % cfg.checkpoint_every == 0:
                 names = ("loss", "bit_acc", "psnr_render", "psnr_texture")
                 values = torch.stack([torch.as_tensor(row.get(name, float("nan")), dtype=torch.float32,
                                                       device=self.device).reshape(()) for _, row in pending
@@ -572,7 +614,7 @@ class Trainer:
                 bar.set_postfix(acc=f"{sum(recent) / len(recent):.3f}", psnr=f"{values[-1][2]:.1f}",
                                 stage=pending[-1][1]["stage"])
                 pending = []
-            if self.step % cfg.val_every == 0 or last:
+            if main and (self.step % cfg.val_every == 0 or last):
                 metrics = self.validate_gbuffers() if self.views is not None else evaluate(
                     self.model, self.val_set, n_meshes=cfg.val_meshes, views=1, seed=self.config.seed,
                     render_size=cfg.render_size, sampler=cfg.sampler, batch_size=cfg.batch_size,
@@ -584,14 +626,17 @@ class Trainer:
                           f"ssim_render {metrics['ssim_render']:.4f} psnr_texture {metrics['psnr_texture']:.2f} "
                           f"({self.step / max(self.elapsed, 1e-9) * 60:.0f} steps/min)")
                 plot_curves(self.out)
-            if self.step % cfg.checkpoint_every == 0 or last:
+            overdue = cfg.checkpoint_minutes is not None and time.time() - saved_at > 60 * cfg.checkpoint_minutes
+            if self.step % cfg.checkpoint_every == 0 or last or overdue:
                 self._checkpoint()
+                saved_at = time.time()
             if last:
                 break
         bar.close()
         self._save_model()
         summary = {"steps": self.step, "elapsed_s": round(self.elapsed, 1), "stopped_by_time_limit": stopped_early}
-        (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
+        if main:
+            (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
         return summary
 
 

@@ -331,7 +331,7 @@ def _describe(result, expect=None) -> str:
     if not result.detected and expect is not None and result.message is not None:
         return f"not {json.dumps(expect)}: the mark reads {json.dumps(result.message)} ({p_value} of the match{how})"
     if not result.detected:
-        return f"not detected ({p_value}{how})"
+        return f"not detected ({p_value}{how})" + (f": {result.reason}" if result.reason else "")
     if result.message is None:
         return f"detected, message unreadable ({p_value}{how})"
     corrected = f", {result.errors_corrected} bit(s) corrected" if result.errors_corrected else ""
@@ -355,7 +355,7 @@ def run_detect(args) -> int:
         from .. import payload
 
         payload.encode(expect, key, watermarker.n_bits)
-    failed, readings = 0, []
+    failed, readings, decisions = 0, [], []
     progress = None
     if sys.stderr.isatty() and len(pictures) > 1:
         from tqdm import tqdm
@@ -364,17 +364,33 @@ def run_detect(args) -> int:
     workers = args.workers or (min(available_cores(), 8) if len(pictures) >= MANY_PICTURES else 1)
     with closing(_readings(args, watermarker, original, pictures, min(workers, len(pictures)))) as read:
         for path, reading, error in read:  # closing: the worker pool ends even if a line fails
-            failed += _report(args, watermarker, path, reading, error, progress, key, expect, readings)
+            failed += _report(args, watermarker, original, path, reading, error, progress, key, expect, readings,
+                              decisions)
     if progress is not None:
         progress.close()
     if args.pool and readings:
         result = watermarker.decide(readings, key, expect)
+        result.reason = watermarker.why_not(result, original, key)
+        decisions.append(result.detected)
         print(json.dumps(result.to_dict()) if args.json else f"{len(readings)} pictures pooled: {_describe(result, expect)}")
-    return 2 if failed else 0
+    if not failed and key is None and decisions and not any(decisions) and watermarker.calibrated:
+        print("meshseal: note: read under the public key (no --key, no $MESHSEAL_KEY): a mark made under a "
+              "secret key reads as no mark", file=sys.stderr)
+    return detect_status(failed, decisions)
 
 
-def _report(args, watermarker, path, reading, error, progress, key, expect, readings) -> int:
-    """Print one picture's line (or keep its reading for the pool); 1 if it could not be read."""
+def detect_status(failed: int, decisions: list) -> int:
+    """`meshseal detect`'s exit status: 2 if any picture could not be read, else 1 if the model decided
+    and no picture (or pool) was detected, else 0 (one detected, or no decision: raw bits)."""
+    if failed:
+        return 2
+    decided = [d for d in decisions if d is not None]
+    return 1 if decided and not any(decided) else 0
+
+
+def _report(args, watermarker, original, path, reading, error, progress, key, expect, readings, decisions) -> int:
+    """Print one picture's line (or keep its reading for the pool; its decision goes to `decisions`);
+    1 if it could not be read."""
     if error is not None:
         (progress.write if progress else lambda line: print(line, file=sys.stderr))(f"meshseal: error: {error}")
         if args.json:
@@ -387,6 +403,8 @@ def _report(args, watermarker, path, reading, error, progress, key, expect, read
         readings.append(reading)
         return 0
     result = watermarker.decide([reading], key, expect)
+    result.reason = watermarker.why_not(result, original, key)
+    decisions.append(result.detected)
     line = json.dumps({"image": str(path)} | result.to_dict()) if args.json else f"{path}: {_describe(result, expect)}"
     if progress is not None and not args.json:
         progress.write(line)
@@ -524,8 +542,13 @@ def run_train(args) -> int:
     if args.time_limit is not None:
         config.train.time_limit_minutes = args.time_limit
     out = args.out or Path("runs") / config.name
-    summary = Trainer(config, out, resume=args.resume, device=_train_device(args.device)).fit()
-    print(json.dumps(summary | {"out": str(out)}))
+    trainer = Trainer(config, out, resume=args.resume, device=_train_device(args.device))
+    summary = trainer.fit()
+    from ..training.distributed import leave
+
+    leave(trainer.world)
+    if trainer.world.main:
+        print(json.dumps(summary | {"out": str(out)}))
     return 0
 
 
