@@ -347,9 +347,11 @@ def test_untextured_materials_weigh_nothing():
         assert (float(evidence.abs().max()) > 0) == (materials[0].texture is not None)
 
 
-def test_bit_weights_give_each_picture_its_own_exact_null_over_keys():
+@pytest.mark.parametrize("keys", [40, pytest.param(300, marks=[pytest.mark.slow, pytest.mark.stats])])
+def test_bit_weights_give_each_picture_its_own_exact_null_over_keys(keys):
     """One picture's cell evidence read under many keys: z_b is the bit's cells' sum with the key's signs
-    over their norm (what `bit_weights` holds), and the exact-null p-values over keys are uniform."""
+    over their norm (what `bit_weights` holds), and the exact-null p-values over keys are uniform (a KS
+    test: 40 keys in the default run, 300 in the `stats` tier)."""
     from scipy import stats
 
     from meshseal import payload
@@ -361,7 +363,7 @@ def test_bit_weights_give_each_picture_its_own_exact_null_over_keys():
     seen = torch.randperm(encoder.chips ** 2, generator=generator)[:3000]  # a small object: ~47 cells a bit
     sums[0, seen] = torch.randn(3000, generator=generator, dtype=torch.float64) ** 3  # heavy-tailed evidence
     exact = []
-    for key in range(300):
+    for key in range(keys):
         weights = bit_weights(encoder, sums, key)
         assign, _ = encoder.pattern(key)
         assert weights.shape == (1, 64, encoder.chips ** 2 // 64)
