@@ -39,10 +39,13 @@ def test_the_right_key_reads_the_text_and_nothing_else_does(pictures, capsys, mo
         assert result["detected"] and result["message"] == "ab42" and result["p_value"] < 1e-6
         assert result["camera"] == "metadata" and result["errors_corrected"] is not None
     assert not clean["detected"] and clean["message"] is None and clean["p_value"] > 1e-3
-    # Another key, or none (the public key): the mark is noise.
+    # Another key, or none (the public key): the mark is noise, and no reason is given (a mark under
+    # another key is not told apart from no mark); without a key a note says what was assumed.
     for key in (["--key", "other"], []):
-        code, results, _ = _detect(capsys, pictures / "views" / "v_0.png", *key)
-        assert code == 0 and not results[0]["detected"] and results[0]["message"] is None
+        code, results, err = _detect(capsys, pictures / "views" / "v_0.png", *key)
+        assert code == 1 and not results[0]["detected"] and results[0]["message"] is None
+        assert "reason" not in results[0] and results[0]["silhouette_iou"] > 0.9
+        assert ("public key" in err) == (not key)
     # The key from the environment, as a known message; another message is refused but named.
     monkeypatch.setenv("MESHSEAL_KEY", "s3cret")
     code, results, _ = _detect(capsys, pictures / "views" / "v_1.png", "--expect", "ab42")
@@ -97,3 +100,40 @@ def test_payload_limits_and_models_listing(pictures, tmp_path, capsys):
     models = {m["name"]: m for m in json.loads(capsys.readouterr().out)}
     assert models["default"]["payload_bits"] >= 32 and models["default"]["calibrated"]
     assert models["default"]["informed"] and models["learned32"]["payload_bits"] == 12
+
+
+def test_detect_says_why_where_a_plausible_mistake_explains_no_mark(pictures, capsys):
+    """The marked mesh given as the original, or another mesh: 'not detected' says why, exit 1."""
+    capsys.readouterr()
+    picture = pictures / "views" / "v_0.png"
+    code = main(["detect", str(picture), "--mesh", str(pictures / "m.glb"), "--key", "s3cret"])
+    out = capsys.readouterr().out
+    assert code == 1 and "not detected" in out and "itself marked under this key" in out, out
+    code = main(["detect", str(picture), "--mesh", str(FIXTURES / "suzanne.glb"), "--key", "s3cret", "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert code == 1 and not result["detected"] and result["silhouette_iou"] < 0.8
+    assert result["reason"].startswith("the picture does not seem to show this mesh"), result
+    # The right mesh under the right key: no reason, exit 0.
+    code = main(["detect", str(picture), "--mesh", BUNNY, "--key", "s3cret", "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert code == 0 and result["detected"] and "reason" not in result
+
+
+def test_own_mark_is_read_from_the_texture_alone_under_its_key_only(pictures):
+    import meshseal
+    from meshseal.payload import FPR
+
+    wm = meshseal.load()
+    marked, clean = wm.original(pictures / "m.glb"), wm.original(BUNNY)
+    assert wm.own_mark_pvalue(marked, "s3cret") < FPR
+    for original, key in ((marked, "other"), (marked, None), (clean, "s3cret"), (clean, None)):
+        assert wm.own_mark_pvalue(original, key) > 1e-3, key
+
+
+def test_detect_exit_status():
+    from meshseal.commands.model import detect_status
+
+    assert detect_status(0, [True, False]) == 0  # any picture detected
+    assert detect_status(0, [False, False]) == 1  # none
+    assert detect_status(0, [None]) == 0  # no decision (raw bits of an uncalibrated model)
+    assert detect_status(1, [True]) == 2  # a picture could not be read

@@ -95,6 +95,8 @@ class Detection:
     camera: str | None = None
     registration_iou: float | None = None
     pictures: int = 1
+    silhouette_iou: float | None = None
+    reason: str | None = None
 
     def to_dict(self) -> dict:
         result = {"detected": self.detected, "p_value": None if self.p_value is None else float(f"{self.p_value:.4g}"),
@@ -108,6 +110,10 @@ class Detection:
             result["registration_iou"] = round(self.registration_iou, 4)
         if self.pictures != 1:
             result["pictures"] = self.pictures
+        if self.silhouette_iou is not None:
+            result["silhouette_iou"] = round(self.silhouette_iou, 4)
+        if self.reason is not None:
+            result["reason"] = self.reason
         return result
 
 
@@ -122,6 +128,7 @@ class _Reading:
     found: object = None  # the Cameras used to un-render (informed models)
     tries: int = 1  # what `decide` multiplies the p-value by for the cameras a second look could try
     second_look: tuple = ()  # registered: (picture, mask, Registration.alternatives), until `look_again`
+    silhouette_iou: float | None = None  # camera from metadata: the original's silhouette under it against the picture's object
 
 
 MIN_PICTURE_SIDE = 16  # smaller pictures cannot show the object's texture; refused at once
@@ -204,6 +211,7 @@ def _load_image(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
 
 PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has faces without UV area
 SHARPEN_ROUNDS = 2  # a second look sharpens the registered camera again (light refitted) where the first round's reading hints at a mark
+SHOWS_MESH_BELOW = 0.8  # `why_not`: an object overlapping the original's silhouette less than this may be another mesh
 LOOK_AGAIN_BELOW = 0.05  # a second look finishes the other views where the first reading's p-value is under this, else those whose rough reading's is
 
 
@@ -215,6 +223,7 @@ class Watermarker:
         self.name = name
         self._grids_of: tuple | None = None  # (prepared original, encoder, its grids_to_read)
         self._cpu_of: tuple | None = None  # (prepared original, its copy on the CPU for registration)
+        self._own_of: tuple | None = None  # (prepared original, key seed, own_mark_pvalue) for `why_not`
 
     @property
     def n_bits(self) -> int:
@@ -404,10 +413,10 @@ class Watermarker:
         single = not isinstance(images, (list, tuple))
         readings = [self.look_again(self.read(image, original, register, fov_y), original, key, expect, search=not pool)
                     for image in ([images] if single else images)]
-        if pool:
-            return self.decide(readings, key, expect)
-        results = [self.decide([reading], key, expect) for reading in readings]
-        return results[0] if single else results
+        results = [self.decide(readings, key, expect)] if pool else [self.decide([r], key, expect) for r in readings]
+        for result in results:
+            result.reason = self.why_not(result, original, key)
+        return results[0] if single or pool else results
 
     def look_again(self, reading: _Reading, original, key=None, expect=None, search: bool = True) -> _Reading:
         """A registered reading, looked at again where its mark is not found: first under the registered
@@ -478,7 +487,9 @@ class Watermarker:
         first = readings[0]
         extra = {"box": first.box if len(readings) == 1 else None, "camera": first.camera,
                  "registration_iou": first.registration_iou if len(readings) == 1 else None,
-                 "pictures": len(readings)}
+                 "pictures": len(readings),
+                 "silhouette_iou": (first.silhouette_iou if first.silhouette_iou is not None else first.registration_iou)
+                 if len(readings) == 1 else None}
         evidence = torch.stack([r.evidence for r in readings]).sum(0, keepdim=True)
         weights, tries = None, 1
         expected = payload.encode(expect, key, self.n_bits) if expect is not None and self.n_bits in payload.SCHEMAS else None
@@ -525,6 +536,58 @@ class Watermarker:
             scores = [float((soft * (2.0 * expected.to(soft) - 1.0)).sum()) for soft in softs]
         best = max(range(len(parts)), key=scores.__getitem__)
         return softs[best], bit_weights(encoder, parts[best], key_seed)[0].double(), len(parts)
+
+    def why_not(self, result: Detection, original, key=None) -> str | None:
+        """Why a picture read no mark, where a plausible mistake explains it, else None: the mesh
+        given as the original is itself marked under `key` (`own_mark_pvalue` under the FPR: a
+        picture of it then reads nothing against it), or the picture's object does not match the
+        original's silhouette under the picture's camera (IoU under SHOWS_MESH_BELOW: another mesh,
+        or a registration gone astray). A mark made under another key is not told apart from no mark
+        (docs/payload.md)."""
+        from . import payload
+
+        if result.detected is not False or original is None:
+            return None
+        key_seed = self._key_seed(key)
+        if self._own_of is None or self._own_of[0] is not original or self._own_of[1] != key_seed:
+            self._own_of = (original, key_seed, self.own_mark_pvalue(original, key))
+        own = self._own_of[2]
+        if own is not None and payload.detected(own):
+            return (f"the mesh given as the original is itself marked under this key (p = {own:.2g}): "
+                    f"give the unmarked original with --mesh")
+        if result.silhouette_iou is not None and result.silhouette_iou < SHOWS_MESH_BELOW:
+            return f"the picture does not seem to show this mesh (silhouette IoU {result.silhouette_iou:.2f})"
+        return None
+
+    def own_mark_pvalue(self, original, key=None) -> float | None:
+        """The p-value that the textures of `original` (from `original()`) carry a mark under `key`
+        themselves, read from the textures alone (`models.spread.texture_cell_sums`, every grid
+        detection reads, their sums over the materials, Bonferroni over the grids): under FPR, the
+        mesh given as the original is a marked copy, against which a picture of it reads no mark.
+        None for models without calibrated soft bits."""
+        from . import payload
+        from .models.spread import bit_weights, soft_bits, split_grids, texture_cell_sums
+
+        if not self.calibrated:
+            return None
+        encoder, key_seed = self.model.texture_encoder, self._key_seed(key)
+        grids = self._grids_to_read(original)
+        faces = original.faces[0] if original.faces.dim() == 3 else original.faces
+        material = original.face_material[0] if original.face_material.dim() == 2 else original.face_material
+        total = None
+        for index, texture in enumerate(original.textures):
+            if texture is None:
+                continue
+            texture = texture[None] if texture.dim() == 3 else texture[:1]  # (1, 3, H, W)
+            used = texels_used(original.uvs[0], faces[material == index], *texture.shape[-2:])
+            sums = texture_cell_sums(encoder, texture, used, grids)
+            total = sums if total is None else total + sums
+        if total is None:
+            return None
+        parts = split_grids(encoder, total.cpu())
+        p_values = [float(payload.detection_pvalue(soft_bits(encoder, sums, key_seed)[0].double(),
+                                                   bit_weights(encoder, sums, key_seed)[0].double())) for sums in parts]
+        return min(1.0, len(parts) * min(p_values))
 
     @property
     def informed(self) -> bool:
@@ -574,6 +637,11 @@ class Watermarker:
             corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
             box = box_from_points(corners.reshape(-1, 2), height, width)
             evidence, source = self._evidence(original, tensor.clamp(0, 1), camera), "given" if given else "metadata"
+            if from_metadata:  # does the picture show this mesh where its camera says? (`why_not`)
+                from .register import silhouette_iou
+
+                shown = silhouette_iou(self._on_cpu(original), camera.to("cpu"), torch.from_numpy(mask > 0.5))
+                return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera, silhouette_iou=shown)
         else:
             box = boxes_from_mask(torch.from_numpy(mask)[None])
             background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)

@@ -41,10 +41,18 @@ def register(subparsers) -> None:
     embed.add_argument("--json", action="store_true", help="print one JSON object")
     embed.set_defaults(func=run_embed)
 
-    detect = subparsers.add_parser("detect", help="read the message from pictures of a marked mesh",
-                                   description="Decode each picture (any size, any plain background).")
+    detect = subparsers.add_parser(
+        "detect", help="read the message from pictures of a marked mesh",
+        description="Read the mark from each picture (any size; a plain or busy background; the camera from "
+                    "the PNG metadata `meshseal render` writes, else found by registration) and print whether it "
+                    "is there under the key, its p-value and the message. Where a plausible mistake explains "
+                    "'not detected' (the marked mesh given as --mesh, a picture of another mesh) the line says so.",
+        epilog="exit status: 0 a mark detected (several pictures: in at least one; --pool: in the pool; models "
+               "that only print raw bits: 0), 1 no mark detected in any picture, 2 an error (bad arguments, or "
+               "a picture that could not be read: the others are still read and printed).")
     detect.add_argument("images", type=Path, nargs="+", help="image files (PNG, JPEG, ...) or folders of them")
-    detect.add_argument("--model", default=None, help="shipped model name or .safetensors path")
+    detect.add_argument("--model", default=None,
+                        help="shipped model name or .safetensors path (default: default; `meshseal models` lists them)")
     detect.add_argument("--mesh", type=Path, default=None,
                         help="the original (unmarked) mesh file: informed models, like the default, need it")
     detect.add_argument("--register", action="store_true",

@@ -288,6 +288,36 @@ def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch
     return sums.reshape(n_images, -1)
 
 
+def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, used: torch.Tensor,
+                      grids: tuple[int, ...]) -> torch.Tensor:
+    """The matched filter's evidence per cell (1, sum C*C) read from a texture (1, 3, H, W) itself, with
+    no original to subtract: the texels `used` (H, W), projected on the mark's colour, with the
+    texture's slow content taken off and its local variance divided out at the scale of a cell
+    (`whiten` in texture space), weighted by the mark's amplitude and accumulated into each grid's
+    cells as `cell_sums` does. The host texture stays in the sums as noise, but every step depends on
+    the texture alone, never on a key's signs: `soft_bits` / `bit_weights` of these sums keep the exact
+    null of an unmarked texture (`payload.detection_pvalue`), so a texture that reads as marked under
+    a key carries that key's mark. Used to tell a user that the mesh given as the original is itself
+    marked."""
+    from ..distortions import gaussian_blur
+
+    height, width = texture.shape[-2:]
+    projected = (texture.float() * encoder.colour.to(texture.device).view(1, 3, 1, 1)).sum(1, keepdim=True)
+    amplitude = activity_mask(texture.float(), encoder.window, encoder.floor)
+    rows, columns = torch.nonzero(used.to(texture.device), as_tuple=True)
+    uv = torch.stack([(columns + 0.5) / width, 1.0 - (rows + 0.5) / height], dim=-1).float()
+    image_index = torch.zeros(len(rows), dtype=torch.long, device=texture.device)
+    sums = []
+    for chips in grids:
+        sigma = max(width / chips, 1.0)  # a cell's width in texels
+        detail = projected - gaussian_blur(projected, sigma)
+        variance = gaussian_blur(detail * detail, sigma)
+        variance = torch.maximum(variance, 0.05 * variance.median().clamp_min(1e-12))
+        values = (detail / variance * amplitude)[0, 0, rows, columns]
+        sums.append(cell_sums(encoder, values, uv, image_index, 1, (chips,)))
+    return torch.cat(sums, dim=1)
+
+
 def split_grids(encoder: SpreadSpectrumEncoder, sums: torch.Tensor) -> list[torch.Tensor]:
     """Cell sums of one grid or two side by side (`grids_to_read`: the model's own, then the coarse or
     the fine one) -> each grid's sums (B, C*C)."""
