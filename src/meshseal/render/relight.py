@@ -51,13 +51,18 @@ def _best_light(y, u, position, normal, candidates):
     position (K, 3); returns (residual, a (3,), position (3,), d (3,)) of the best one. Every sum over
     pixels is a (P, K) matrix product, so hundreds of candidates cost a few milliseconds."""
     kc, kl, kq = ATTENUATION
-    squared = (candidates * candidates).sum(-1) - 2 * position @ candidates.T + (position * position).sum(-1, True)
-    distance = squared.clamp_min(1e-12).sqrt()  # (P, K)
-    facing = normal @ candidates.T - (normal * position).sum(-1, True)
-    lit = (facing / distance).clamp_min(0.0) / (kc + kl * distance + kq * squared)  # (P, K)
+    # The (P, K) terms are built in place, in the same order of operations as the plain expressions
+    # (squared = |c|^2 - 2 p.c + |p|^2, lit = max(n.c - n.p, 0) / distance / (kc + kl distance + kq
+    # squared)): the same bits, without ten (P, K) temporaries.
+    squared = (position @ candidates.T).mul_(-2.0).add_((candidates * candidates).sum(-1))
+    squared.add_((position * position).sum(-1, True))
+    distance = squared.clamp_min(1e-12).sqrt_()  # (P, K)
+    lit = (normal @ candidates.T).sub_((normal * position).sum(-1, True)).div_(distance).clamp_min_(0.0)
+    lit.div_(distance.mul_(kl).add_(kc).add_(squared.mul_(kq)))  # (P, K); distance and squared used up
     uu, uy = u * u, u * y
     suu, suy = uu.sum(0, True).T, uy.sum(0, True).T  # (3, 1)
-    suv, svv, svy = uu.T @ lit, uu.T @ (lit * lit), uy.T @ lit  # (3, K)
+    suv, svy = uu.T @ lit, uy.T @ lit  # (3, K)
+    svv = uu.T @ lit.mul_(lit)
     det = (suu * svv - suv * suv).clamp_min(1e-9)
     a = ((svv * suy - suv * svy) / det).clamp_min(0.0)
     d = ((suu * svy - suv * suy) / det).clamp_min(0.0)
