@@ -137,3 +137,17 @@ def test_detect_exit_status():
     assert detect_status(0, [False, False]) == 1  # none
     assert detect_status(0, [None]) == 0  # no decision (raw bits of an uncalibrated model)
     assert detect_status(1, [True]) == 2  # a picture could not be read
+
+
+def test_a_mark_in_an_obj_jpeg_texture_survives_the_file(tmp_path, capsys):
+    """crate.obj's texture is a JPEG: the marked OBJ keeps it a JPEG (quality 95, 4:4:4), and a
+    picture of the file as written reads the mark."""
+    crate = FIXTURES / "sh3d_crate" / "crate.obj"
+    assert main(["embed", str(crate), "-o", str(tmp_path / "crate_marked.obj"), "--message", "jp", "--views", "1"]) == 0
+    assert (tmp_path / "crate_marked.jpg").is_file()
+    assert main(["render", str(tmp_path / "crate_marked.obj"), "-o", str(tmp_path / "v.png"), "--width", "192",
+                 "--height", "192", "--camera", "1.5,-2.5,2"]) == 0
+    capsys.readouterr()
+    assert main(["detect", str(tmp_path / "v.png"), "--mesh", str(crate), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["detected"] and result["message"] == "jp"

@@ -219,7 +219,7 @@ def test_obj_round_trip(tmp_path):
     assert _no_temp_files(tmp_path)
     again = load(tmp_path / "out.obj")
     assert [m.name for m in again.materials] == ["teapot"]
-    assert torch.allclose(again.materials[0].texture, mesh.materials[0].texture, atol=1.0 / 255 + 1e-6)
+    assert _psnr(again.materials[0].texture, mesh.materials[0].texture) > 45  # teapot.jpg: JPEG at quality 95
     assert again.n_faces == mesh.n_faces and again.n_vertices == mesh.n_vertices
     assert torch.allclose(again.positions, mesh.positions, atol=1e-5)
     assert torch.allclose(again.uvs, mesh.uvs, atol=1e-5)
@@ -283,7 +283,65 @@ def test_obj_multi_material_save_keeps_textures(tmp_path):
     assert sum(m.texture is not None for m in again.materials) == 2
     for before, after in zip(mesh.materials, again.materials):
         if before.texture is not None:
-            assert torch.allclose(before.texture, after.texture, atol=1.0 / 255 + 1e-6)
+            assert _psnr(before.texture, after.texture) > 45  # JPEG in, JPEG out at quality 95
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(10 * torch.log10(1.0 / ((a - b) ** 2).mean()))
+
+
+def test_obj_round_trip_keeps_object_names_material_fields_and_texture_names(tmp_path):
+    """deckChair.obj: one object 'Chair.002_Group1.002' with three materials, an MTL with Ni, d, illum,
+    JPEG textures. The output keeps the object, every MTL field, the textures' names with the output's
+    suffix and their format (JPEG, 4:4:4 chroma); a PNG texture stays PNG."""
+    from PIL import Image
+
+    folder = FIXTURES / "sh3d_deckChair"
+    mesh = load(folder / "deckChair.obj")
+    written = save(mesh, tmp_path / "deckChair_marked.obj")
+    assert sorted(p.name for p in written) == ["BEuropean_Beech_marked.jpg", "BlueWhite_Stripes_marked.jpg",
+                                               "deckChair_marked.mtl", "deckChair_marked.obj"]
+    obj = (tmp_path / "deckChair_marked.obj").read_text()
+    assert [line for line in obj.splitlines() if line.startswith(("o ", "g "))] == ["o Chair.002_Group1.002"]
+    assert [line for line in obj.splitlines() if line.startswith("usemtl")] == \
+        ["usemtl Metal", "usemtl ChairFrame", "usemtl Chair_Fabric"]
+    source = (folder / "deckChair.mtl").read_text().splitlines()
+    expected = [line.replace("Beech.jpg", "Beech_marked.jpg").replace("Stripes.jpg", "Stripes_marked.jpg")
+                for line in source if line.strip() and not line.startswith("#")]
+    assert [line for line in (tmp_path / "deckChair_marked.mtl").read_text().splitlines()
+            if line.strip() and not line.startswith("#")] == expected
+    with Image.open(tmp_path / "BEuropean_Beech_marked.jpg") as image:
+        assert image.format == "JPEG" and image.layer[0][1:3] == image.layer[1][1:3] == (1, 1)  # 4:4:4
+    again = load(tmp_path / "deckChair_marked.obj")
+    assert [p.node for p in again.source.parts] == [p.node for p in mesh.source.parts]
+    assert torch.equal(again.face_material, mesh.face_material)
+    # Another output name: the suffix is '_' and that name. A PNG texture stays PNG; other maps are copied.
+    written = save(mesh, tmp_path / "other" / "chair.obj")
+    assert "BEuropean_Beech_chair.jpg" in {p.name for p in written}
+    sphere = tmp_path / "box"
+    sphere.mkdir()
+    import trimesh
+    from PIL import Image as PILImage
+
+    textured = trimesh.creation.box()
+    textured.visual = trimesh.visual.TextureVisuals(uv=np.random.default_rng(0).random((8, 2)),
+                                                    image=PILImage.new("RGB", (8, 8), (200, 20, 20)))
+    (sphere / "box.obj").write_text("mtllib box.mtl\ng Box\nusemtl skin\n"
+                                    + "".join(f"v {x} {y} {z}\n" for x, y, z in textured.vertices)
+                                    + "".join(f"vt {u} {v}\n" for u, v in textured.visual.uv)
+                                    + "".join(f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}\n"
+                                              for a, b, c in textured.faces))
+    (sphere / "box.mtl").write_text("newmtl skin\nKd 1 1 1\nillum 1\nmap_Kd skin.png\nmap_Bump bump.png\n")
+    PILImage.new("RGB", (8, 8), (200, 20, 20)).save(sphere / "skin.png")
+    PILImage.new("RGB", (8, 8), (128, 128, 255)).save(sphere / "bump.png")
+    written = save(load(sphere / "box.obj"), tmp_path / "out" / "box_marked.obj")
+    assert sorted(p.name for p in written) == ["box_marked.mtl", "box_marked.obj", "bump.png", "skin_marked.png"]
+    assert (tmp_path / "out" / "box_marked.mtl").read_text().split("\n")[2:] == \
+        ["newmtl skin", "Kd 1 1 1", "illum 1", "map_Kd skin_marked.png", "map_Bump bump.png", ""]
+    assert [line for line in (tmp_path / "out" / "box_marked.obj").read_text().splitlines()
+            if line.startswith(("o ", "g "))] == ["g Box"]
+    with PILImage.open(tmp_path / "out" / "skin_marked.png") as image:
+        assert image.format == "PNG"
 
 
 def test_save_in_memory_mesh(tmp_path):
@@ -323,15 +381,15 @@ def test_save_never_overwrites_the_input(tmp_path):
 
 
 def test_save_never_overwrites_an_input_texture(tmp_path):
-    # The OBJ's texture has exactly the name the exporter would give the output's texture.
+    # Another map of the OBJ's material has exactly the name the output's texture would get.
     folder = tmp_path / "teapot"
     shutil.copytree(FIXTURES / "teapot", folder)
     mesh = load(folder / "teapot.obj")
     probe = save(mesh, tmp_path / "probe" / "out.obj")
     texture_name = next(p.name for p in probe if p.suffix.lower() in (".png", ".jpg"))
-    (folder / "teapot.jpg").rename(folder / texture_name)
+    shutil.copy(folder / "teapot.jpg", folder / texture_name)
     mtl = folder / "teapot.mtl"
-    mtl.write_text(mtl.read_text().replace("teapot.jpg", texture_name))
+    mtl.write_text(mtl.read_text() + f"\nmap_Bump {texture_name}\n")
     before = _files(folder)
     mesh = load(folder / "teapot.obj")
     assert mesh.materials[0].texture is not None

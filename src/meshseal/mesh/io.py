@@ -4,7 +4,9 @@ Design: a file is loaded as a trimesh Scene. Every (node, geometry) instance bec
 concatenated into one `Mesh` with a per-face material index (one material per trimesh geometry, with
 its own texture). Saving copies the Scene, writes each part's normals, uvs, texture (and positions, if
 they changed) back into its geometry and exports in the input's format, so material names, other maps
-(normal, metallic-roughness, ...), node names and transforms survive.
+(normal, metallic-roughness, ...), node names and transforms survive. An OBJ is then put back in its
+source's terms (`_obj_as_source`): object and group names, the MTL's fields as written, texture names
+and formats.
 """
 
 from __future__ import annotations
@@ -390,6 +392,146 @@ def _export(scene, file_type: str, stem: str) -> dict[str, bytes]:
     return {f"{stem}.{file_type}": data if isinstance(data, bytes) else data.encode()}
 
 
+JPEG_QUALITY = 95  # a marked texture read from a JPEG is written as JPEG at this quality, 4:4:4 chroma
+
+
+def _obj_records(text: str) -> tuple[list[str], dict[str, tuple[str | None, str | None]]]:
+    """An OBJ's `mtllib` names and, for each material its `usemtl` records name, the object (`o`) and
+    group (`g`) it is first used in (None where the file has none)."""
+    libraries, objects, current = [], {}, {"o": None, "g": None}
+    for line in text.splitlines():
+        fields = line.strip().split(None, 1)
+        if not fields:
+            continue
+        rest = fields[1].strip() if len(fields) > 1 else ""
+        if fields[0] in ("o", "g"):
+            current[fields[0]] = rest
+        elif fields[0] == "usemtl":
+            objects.setdefault(rest, (current["o"], current["g"]))
+        elif fields[0] == "mtllib":
+            libraries.append(rest)
+    return libraries, objects
+
+
+def _mtl_blocks(text: str) -> dict[str, list[str]]:
+    """An MTL's material blocks, {name: its lines, `newmtl` first}; a name defined twice keeps the last."""
+    blocks, name = {}, None
+    for line in text.splitlines():
+        fields = line.strip().split(None, 1)
+        if fields and fields[0] == "newmtl":
+            name = fields[1].strip() if len(fields) > 1 else ""
+            blocks[name] = []
+        if name is not None and line.strip():
+            blocks[name].append(line.rstrip())
+    return blocks
+
+
+def _map_kd(lines: list[str]) -> str | None:
+    """The texture file a material block's `map_Kd` names (the rest of the line, as trimesh reads it)."""
+    for line in lines:
+        fields = line.strip().split()
+        if len(fields) >= 2 and fields[0].lower() == "map_kd":
+            return line.strip()[len(fields[0]):].strip()
+    return None
+
+
+def _obj_as_source(files: dict[str, bytes], source: Source, path: Path) -> dict[str, bytes]:
+    """trimesh's OBJ export of a loaded OBJ, put back in the source's terms: each material's block as the
+    source MTL wrote it (every field: Ni, d, illum, other maps...) with only its diffuse texture renamed;
+    the marked texture named as the source's with a suffix (the output's name past the input's, e.g.
+    `wood.jpg` -> `wood_marked.jpg` for `chair.obj` -> `chair_marked.obj`, else `_` and the output's
+    name) and in its format (a JPEG as JPEG at JPEG_QUALITY with full-resolution chroma; PNG for any
+    other format or a texture with alpha); the source's object and group names (`o`, `g`) instead of
+    the per-material objects trimesh writes; other maps the MTL names copied beside the output under
+    their base names. A material the source does not define keeps trimesh's block."""
+    stem = path.stem
+    libraries, objects = _obj_records(read_regular(source.path, "mesh file").decode("utf-8", "replace"))
+    blocks: dict[str, tuple[list[str], Path]] = {}
+    for library in libraries:
+        mtl_path = find_asset(source.path.parent, library)
+        if mtl_path is not None:
+            text = read_regular(mtl_path, "material file").decode("utf-8", "replace")
+            blocks |= {name: (lines, mtl_path.parent) for name, lines in _mtl_blocks(text).items()}
+    exported = _mtl_blocks(files.get(f"{stem}.mtl", b"").decode())
+    suffix = stem[len(source.path.stem):] if stem.startswith(source.path.stem) else f"_{stem}"
+    result = {f"{stem}.obj": files[f"{stem}.obj"]}
+    taken: dict[str, bytes] = {}
+    mtl_lines = ["# meshseal"]
+    order = list(blocks)  # the source's order of materials, trimesh's for any other
+    for name, lines in sorted(exported.items(), key=lambda item: order.index(item[0]) if item[0] in order else len(order)):
+        texture = _map_kd(lines)
+        if name not in blocks:
+            if texture is not None:
+                result[texture] = files[texture]
+            mtl_lines += ["", *lines]
+            continue
+        original, folder = blocks[name]
+        new_lines = []
+        for line in original:
+            fields = line.strip().split()
+            keyword = fields[0].lower() if fields else ""
+            if keyword == "map_kd" and texture is not None:
+                data, new_name = _texture_as_source(files[texture], _map_kd(original), suffix)
+                if taken.get(new_name, data) != data:  # two materials named one file: each keeps its own
+                    new_name = f"{Path(new_name).stem}_{name}{Path(new_name).suffix}"
+                taken[new_name] = result[new_name] = data
+                line = f"map_Kd {new_name}"
+            elif keyword.startswith("map_") or keyword in ("bump", "disp", "decal", "refl", "norm"):
+                found = find_asset(folder, fields[-1]) if len(fields) >= 2 else None
+                if found is not None:
+                    base = Path(fields[-1].replace("\\", "/")).name
+                    line = line.rstrip()[: line.rstrip().rindex(fields[-1])] + base
+                    if resolved(path.parent / base) != found:
+                        result[base] = read_regular(found, "texture file")
+            new_lines.append(line)
+        if texture is not None and _map_kd(original) is None:  # trimesh found a texture the block does not name
+            result[texture] = files[texture]
+            new_lines.append(f"map_Kd {texture}")
+        mtl_lines += ["", *new_lines]
+    if exported:
+        result[f"{stem}.mtl"] = ("\n".join(mtl_lines) + "\n").encode()
+    result[f"{stem}.obj"] = _obj_names_as_source(result[f"{stem}.obj"].decode(), objects).encode()
+    return result
+
+
+def _texture_as_source(png: bytes, source_name: str, suffix: str) -> tuple[bytes, str]:
+    """A marked texture (trimesh's PNG bytes) named and encoded as the source's `source_name` was."""
+    name = Path(source_name.replace("\\", "/"))
+    image = Image.open(io.BytesIO(png))
+    if name.suffix.lower() in (".jpg", ".jpeg") and image.mode in ("RGB", "L"):
+        buffer = io.BytesIO()
+        image.save(buffer, format="JPEG", quality=JPEG_QUALITY, subsampling=0)
+        return buffer.getvalue(), f"{name.stem}{suffix}{name.suffix}"
+    return png, f"{name.stem}{suffix}.png"
+
+
+def _obj_names_as_source(text: str, objects: dict[str, tuple[str | None, str | None]]) -> str:
+    """trimesh's OBJ text with its `o MATERIAL` lines replaced by the source's object and group names
+    for that material (each written where it changes, as the source had them; none where it had none)."""
+    lines, out, pending, written = text.split("\n"), [], None, (None, None)
+    for line in lines:
+        if line.startswith("o "):
+            pending = line
+            continue
+        if pending is not None and line.startswith("usemtl "):
+            material = line[len("usemtl "):].strip()
+            names = objects.get(material)
+            if names is None:
+                out.append(pending)
+            else:
+                if names[0] is not None and names[0] != written[0]:
+                    out.append(f"o {names[0]}")
+                if names[1] is not None and names[1] != written[1]:
+                    out.append(f"g {names[1]}")
+                written = names
+            pending = None
+        elif pending is not None:
+            out.append(pending)
+            pending = None
+        out.append(line)
+    return "\n".join(out)
+
+
 def check_output(path: Path, inputs=()) -> None:
     """Refuse, before any work, an output path a careful tool must not write: one that is an input,
     resolves to one (a symbolic link) or is a hard link to one (same device and inode); an existing
@@ -494,6 +636,8 @@ def save(mesh: Mesh, path) -> list[Path]:
     else:
         scene = trimesh.Scene(_to_trimesh(mesh))
     files = _export(scene, file_type, path.stem)
+    if file_type == "obj" and source is not None:
+        files = _obj_as_source(files, source, path)
     targets = {path.parent / name: data for name, data in files.items()}
     for target in targets:
         check_output(target, source.input_files if source is not None else ())
