@@ -64,6 +64,33 @@ def test_matched_filter_reads_the_mark_and_finds_none_in_the_original():
     assert abs(float(z_clean.mean())) < 0.35 and 0.7 < float(z_clean.std()) < 1.3
 
 
+def test_the_preview_has_a_labelled_row_per_material_texture(tmp_path):
+    """A multi-material mesh: one row per textured material and one render, labels above them."""
+    import numpy as np
+    from PIL import Image
+
+    from meshseal.commands.model import write_preview
+    from meshseal.mesh import load
+
+    original = load(FIXTURES / "multi_material.glb")
+    marked = original.copy()
+    textured = [m for m in marked.materials if m.texture is not None]
+    assert len(textured) >= 2
+    for material in textured:
+        material.texture = (material.texture + 0.1).clamp(0, 1)
+    render = torch.full((3, 64, 64), 0.5)
+    write_preview(tmp_path / "sheet.png", original, marked, (render, render))
+    with Image.open(tmp_path / "sheet.png") as image:
+        sheet = np.asarray(image.convert("L")).astype(int)
+    rows = len(textured) + 1
+    assert sheet.shape == (18 + rows * (18 + 256), 3 * 256 + 2 * 6)
+    for top in [0] + [18 + row * (18 + 256) for row in range(rows)]:  # column labels, each row's label
+        band = sheet[top:top + 18]  # dark text on white
+        assert band.min() < 100 and np.median(band) == 255, top
+    first = sheet[36:36 + 256]
+    assert first[:, 256 + 6:2 * 256 + 6].mean() > first[:, :256].mean()  # marked (brighter here) | original
+
+
 def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, capsys):
     bits = "01" * 32
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", bits,
@@ -76,7 +103,7 @@ def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, ca
     from PIL import Image
 
     with Image.open(tmp_path / "sheet.png") as sheet:
-        assert sheet.size == (768, 512)
+        assert sheet.size == (3 * 256 + 2 * 6, 18 + 2 * (18 + 256))  # labels; the texture row, the render row
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--bits", bits,
                  "--views", "1", "--strength", "0"]) == 2
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "c.glb"), "--bits", bits,

@@ -38,7 +38,8 @@ def register(subparsers) -> None:
     embed.add_argument("--views", type=positive_int(64, minimum=0), default=4,
                        help="views for the visibility figures (default 4; 0: none, faster)")
     embed.add_argument("--preview", type=Path, default=None,
-                       help="write a PNG sheet: texture and one render, original | marked | difference x4")
+                       help="write a PNG sheet: columns original | marked | difference x4, a row per material "
+                            "texture and one render")
     embed.add_argument("--up", choices=("y", "z"), default=None, help="the file's up axis (default: by format)")
     embed.add_argument("--json", action="store_true", help="print one JSON object")
     embed.set_defaults(func=run_embed)
@@ -221,30 +222,42 @@ def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
 
 
 def write_preview(path: Path, original, marked, renders) -> None:
-    """A sheet a person can judge: the first texture and one render, original | marked | difference x4
-    (grey is no change), written atomically as PNG."""
+    """A sheet a person can judge, written atomically as PNG: columns original | marked | difference x4
+    (grey is no change), labelled; one row per textured material (its name and size above it) and one
+    render."""
     import torch
-    from PIL import Image
+    from PIL import Image, ImageDraw, ImageFont
 
     from ..mesh.io import atomic_write, image_bytes
     from ..models.spread import resampled_like
 
-    rows = []
-    textures = [(a.texture.permute(2, 0, 1), b.texture.permute(2, 0, 1))
-                for a, b in zip(original.materials, marked.materials) if a.texture is not None]
-    pairs = ([(resampled_like(*textures[0]), textures[0][1])] if textures else []) + [renders]
-    width = 256
-    for before, after in pairs:
+    width, band, gap = 256, 18, 6
+    rows = [(f"texture '{b.name}' ({b.texture.shape[1]}x{b.texture.shape[0]})",
+             resampled_like(a.texture.permute(2, 0, 1), b.texture.permute(2, 0, 1)), b.texture.permute(2, 0, 1))
+            for a, b in zip(original.materials, marked.materials) if a.texture is not None and b.texture is not None]
+    rows.append(("render (256x256)", *renders))
+    tiles = []
+    for _, before, after in rows:
         rows_of, cols_of = before.shape[-2:]  # fitted into the square, its aspect kept (a charted texture is tall)
         fit = width / max(rows_of, cols_of)
         size = (max(1, round(rows_of * fit)), max(1, round(cols_of * fit)))
         before, after = (torch.nn.functional.interpolate(x[None].float(), size=size, mode="area")[0]
                          for x in (before, after))
-        tiles = [before, after, (0.5 + 4.0 * (after - before)).clamp(0, 1)]
-        rows.append(torch.cat([torch.nn.functional.pad(tile, (0, width - size[1], 0, width - size[0]), value=0.5)
-                               for tile in tiles], dim=2))
-    sheet = (torch.cat(rows, dim=1).clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy()
-    atomic_write(path, image_bytes(Image.fromarray(sheet)))
+        row = [before, after, (0.5 + 4.0 * (after - before)).clamp(0, 1)]
+        row = torch.cat([torch.nn.functional.pad(tile, (0, width - size[1], 0, width - size[0]), value=0.5)
+                         for tile in row], dim=2)
+        tiles.append((row.clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy())
+    sheet = Image.new("RGB", (3 * width + 2 * gap, band + len(rows) * (band + width)), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    font = ImageFont.load_default(size=13)
+    for column, label in enumerate(("original", "marked", "difference x4")):
+        draw.text((column * (width + gap) + 4, 2), label, fill=(0, 0, 0), font=font)
+    for index, ((label, _, _), tile) in enumerate(zip(rows, tiles)):
+        top = band + index * (band + width)
+        draw.text((4, top + 2), label, fill=(60, 60, 60), font=font)
+        for column in range(3):
+            sheet.paste(Image.fromarray(tile[:, column * width:(column + 1) * width]), (column * (width + gap), top + band))
+    atomic_write(path, image_bytes(sheet))
 
 
 def run_embed(args) -> int:
