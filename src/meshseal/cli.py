@@ -4,7 +4,8 @@ Each subcommand lives in a module with `register(subparsers)`; that function add
 `func=callable(args) -> int | None`. Modules that do not exist (yet) are skipped, so optional parts
 of the package can add commands without touching this file.
 
-Exit codes: 0 success, 1 the command reported failure, 2 bad input or arguments, 130 interrupted.
+Exit codes: 0 success, 1 the command reported failure (detect: no mark detected), 2 bad input or
+arguments, 130 interrupted.
 Set MESHSEAL_DEBUG=1 to get the full traceback instead of the one-line error. Before a command runs, the
 thread policy of `meshseal.threads` is applied (MESHSEAL_THREADS=N sets the count).
 """
@@ -29,6 +30,16 @@ COMMAND_MODULES = (
 )
 
 
+EPILOG = """example (mark a mesh, picture it, read the mark back from the picture):
+  meshseal embed chair.obj -o chair_marked.obj --message ab42 --key SECRET --preview sheet.png
+  meshseal render chair_marked.obj -o view.png          # or any screenshot or photo of it
+  meshseal detect view.png --mesh chair.obj --key SECRET
+    view.png: detected "ab42" (p = 4.5e-94, camera: metadata)
+
+'meshseal COMMAND --help' gives each command's options. Exit status: 0 success (detect: a mark
+detected), 1 detect found no mark, 2 an error (one 'meshseal: error:' line), 130 interrupted."""
+
+
 class UsageError(MeshsealError):
     """Bad command-line arguments."""
 
@@ -49,7 +60,7 @@ def _module_exists(name: str) -> bool:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="meshseal", description="Invisible watermarks in textured 3D meshes, "
-                     "read back from 2D renderings.")
+                     "read back from 2D renderings.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"meshseal {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMAND_MODULES:
