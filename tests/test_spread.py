@@ -2,6 +2,7 @@
 known, and no mark found where there is none."""
 
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -91,11 +92,17 @@ def test_the_preview_has_a_labelled_row_per_material_texture(tmp_path):
     assert first[:, 256 + 6:2 * 256 + 6].mean() > first[:, :256].mean()  # marked (brighter here) | original
 
 
-def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, capsys):
+def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, capsys, monkeypatch):
     bits = "01" * 32
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # on a terminal: stage lines on stderr
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", bits,
                  "--views", "1", "--json", "--preview", str(tmp_path / "sheet.png")]) == 0
-    report = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)  # stdout: the one JSON object
+    stages = [line for line in captured.err.splitlines() if line.startswith("meshseal: [")]
+    assert [line.split("] ")[1].split()[0] for line in stages] == ["loading", "marking", "writing", "measuring",
+                                                                  "writing"], captured.err
+    monkeypatch.undo()
     assert 39.8 < report["psnr_texture_shown"] < 40.2 and report["cells"] == 128  # the bunny's cells are over a pixel
     assert report["psnr_texture"] > report["psnr_texture_shown"]  # texels no face shows stay as they were
     assert report["psnr_object"] < report["psnr_frame"]  # the background inflates the whole-frame figure

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
+import time
 
 from ..threads import available_cores  # noqa: F401 (the subcommands import it from here)
 
@@ -35,6 +37,17 @@ def colour(text: str) -> tuple[float, float, float]:
 
 
 
+SAMPLERS = {"paper": "seed", "seed": "seed", "any": "any"}  # 'seed' (the seed paper's): the older name of 'paper'
+
+
+def sampler(text: str) -> str:
+    """--sampler: 'paper' (the camera and light ranges of the seed paper, Yoo et al. 2022) or 'any' (all
+    around) -> the name `pipeline.sample_views` takes; 'seed' is accepted for 'paper' (argparse type)."""
+    if text not in SAMPLERS:
+        raise argparse.ArgumentTypeError(f"expected 'paper' (the seed paper's camera range) or 'any', got '{text}'")
+    return SAMPLERS[text]
+
+
 def positive_int(limit: int, minimum: int = 1):
     def parse(text: str) -> int:
         try:
@@ -46,3 +59,16 @@ def positive_int(limit: int, minimum: int = 1):
         return value
     return parse
 
+
+
+class Stages:
+    """Stage lines on stderr for a command that takes seconds ('meshseal: [  3.2 s] marking ...'), shown
+    only on a terminal: never in stdout (--json stays one object), never in a pipe or a log."""
+
+    def __init__(self, shown: bool | None = None):
+        self.started = time.perf_counter()
+        self.shown = sys.stderr.isatty() if shown is None else shown
+
+    def __call__(self, text: str) -> None:
+        if self.shown:
+            print(f"meshseal: [{time.perf_counter() - self.started:5.1f} s] {text}", file=sys.stderr, flush=True)

@@ -11,7 +11,7 @@ from contextlib import closing
 from pathlib import Path
 
 from ..errors import MeshsealError
-from ._common import available_cores, positive_int
+from ._common import Stages, available_cores, positive_int, sampler
 
 
 def register(subparsers) -> None:
@@ -28,9 +28,10 @@ def register(subparsers) -> None:
     _key_argument(embed)
     embed.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
     embed.add_argument("--strength", type=float, default=None,
-                       help="spread-spectrum models: mark amplitude relative to the default (2: 6 dB louder and "
-                            "more robust, 0.5: 6 dB quieter; default 1, lowered where the FLIP budget asks; given, "
-                            "it is used as is unless --max-flip is given too)")
+                       help="spread-spectrum models: the mark's amplitude, 1 being the default one; 2 is 6 dB "
+                            "louder (more robust, more visible), 0.5 6 dB quieter. Not given: 1, lowered where "
+                            "needed to keep the mark's FLIP within --max-flip. Given: used as is (add --max-flip to "
+                            "keep the budget too)")
     embed.add_argument("--max-flip", type=_budget, default=None,
                        help="spread-spectrum models: lower the strength until the mark's mean FLIP over the object "
                             "in the report's renders is at most this (default 0.03; none by default when --strength "
@@ -83,10 +84,11 @@ def register(subparsers) -> None:
     evaluate.add_argument("--meshes", type=int, default=None, help="at most this many meshes (default all)")
     evaluate.add_argument("--protocol", choices=("seed",), default=None,
                           help="seed: the paper's protocol (its camera and light ranges, meshes with spherical UVs "
-                               "and noise or real textures, 600 x 400 pictures: --sampler seed --texture-kinds "
+                               "and noise or real textures, 600 x 400 pictures: --sampler paper --texture-kinds "
                                "noise,real)")
-    evaluate.add_argument("--sampler", choices=("seed", "any"), default=None,
-                          help="camera/light ranges (default seed)")
+    evaluate.add_argument("--sampler", type=sampler, default=None, metavar="{paper,any}",
+                          help="camera and light ranges: 'paper' (default) the seed paper's (Yoo et al. 2022), "
+                               "'any' all around ('seed' is accepted for 'paper')")
     evaluate.add_argument("--size", type=positive_int(2048), default=None,
                           help="square render size (default 128; --protocol seed and the blind surface models: "
                                "the paper's 600 x 400)")
@@ -261,14 +263,16 @@ def write_preview(path: Path, original, marked, renders) -> None:
 
 
 def run_embed(args) -> int:
+    if args.message is not None and not args.message.strip():
+        raise MeshsealError("--message is empty (or only spaces): give the text to hide (the default model holds 4 bytes), "
+                            "or an asset ID with --id")
+    stage = Stages()
+    stage(f"loading the model and {args.input.name}")
     from ..api import load
     from ..metrics import MAX_FLIP
     from ..mesh import load as load_mesh, save
     from ..mesh.io import check_output
 
-    if args.message is not None and not args.message.strip():
-        raise MeshsealError("--message is empty (or only spaces): give the text to hide (the default model holds 4 bytes), "
-                            "or an asset ID with --id")
     watermarker = load(args.model)
     mesh = load_mesh(args.input, up_axis=args.up)
     check_output(args.output, mesh.source.input_files)
@@ -287,17 +291,22 @@ def run_embed(args) -> int:
     default_budget = args.strength is None and args.views > 0
     max_flip = args.max_flip if args.max_flip is not None else (MAX_FLIP if default_budget else 0.0)
     budget = max_flip > 0 and watermarker.calibrated
+    stage(f"marking the texture{'s' if sum(m.texture is not None for m in base.materials) > 1 else ''}"
+          + (f" and keeping the mark's FLIP within {max_flip} ({args.views} renders)" if budget else ""))
     if budget:
         marked, strength = watermarker.embed_within(base, **message, key=key, strength=asked, max_flip=max_flip,
                                                     views=args.views)
     else:
         marked, strength = watermarker.embed(base, **message, key=key, strength=asked), asked
+    stage(f"writing {args.output}")
     written = save(marked, args.output)
+    stage(f"measuring what the mark changed" + (f" ({args.views} renders)" if args.views else ""))
     report, renders = embed_report(base, marked, args.views)
     report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": round(strength, 4),
                "strength_asked": asked, "max_flip": max_flip if budget else None,
                "cells": watermarker.mark_grid(base), "keyed": key is not None, "output": str(args.output)}
     if args.preview is not None:
+        stage(f"writing the preview {args.preview}")
         write_preview(args.preview, base, marked, renders)
         report["preview"] = str(args.preview)
     if args.json:
@@ -362,6 +371,8 @@ def _describe(result, expect=None) -> str:
 
 
 def run_detect(args) -> int:
+    stage = Stages()
+    stage("loading the model" + (f" and {args.mesh.name}" if args.mesh is not None else ""))
     from ..api import load
 
     watermarker = load(args.model)
@@ -380,6 +391,8 @@ def run_detect(args) -> int:
         payload.encode(expect, key, watermarker.n_bits)
     failed, readings, decisions = 0, [], []
     progress = None
+    if len(pictures) == 1:
+        stage(f"reading {pictures[0]}")
     if sys.stderr.isatty() and len(pictures) > 1:
         from tqdm import tqdm
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import MeshsealError
 from ..render import ENGINES, LIGHT_KINDS, VIEW_TRANSFORMS
-from ._common import colour, positive_int, vector3
+from ._common import Stages, colour, positive_int, sampler, vector3
 
 FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}
 
@@ -40,9 +40,12 @@ def register(subparsers) -> None:
                         help=f"point light position (default {','.join(map(str, DEFAULT_LIGHT))})")
     parser.add_argument("--views", type=positive_int(MAX_VIEWS), default=1, metavar="K",
                         help="number of sampled views (default 1: the fixed default camera)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the view sampler (default 0)")
-    parser.add_argument("--sampler", choices=("seed", "any"), default="seed",
-                        help="views for --views K>1: 'seed' = the seed's training range, 'any' = any azimuth")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="random seed (an integer) of the views drawn for --views K>1 (default 0)")
+    parser.add_argument("--sampler", type=sampler, default="seed", metavar="{paper,any}",
+                        help="where the --views K>1 cameras are drawn from: 'paper' (default) the camera range "
+                             "of the seed paper (Yoo et al. 2022: in front of the object, from above), 'any' all "
+                             "around ('seed' is accepted for 'paper')")
     parser.add_argument("--background", type=colour, default=(0.0, 0.0, 0.0), metavar="R,G,B",
                         help="background colour in [0, 1] (default 0,0,0)")
     parser.add_argument("--up", choices=("y", "z"), default=None,
@@ -100,6 +103,8 @@ def _engine_options(args) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    stage = Stages()
+    stage(f"loading {args.mesh.name}")
     import numpy as np
     import torch
     from PIL import Image
@@ -123,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
     lights = lights_at(torch.tensor([args.light], dtype=torch.float32).expand(len(cameras), 3))
     renderer = make_renderer(args.engine, **_engine_options(args))
     chunk = CHUNK if args.engine in ("ours", "gl") else len(cameras)  # Blender: one process for all views
+    stage(f"rendering {len(cameras)} view{'s' if len(cameras) > 1 else ''} with {args.engine}")
     with torch.no_grad():
         for start in range(0, len(cameras), chunk):
             index = list(range(start, min(start + chunk, len(cameras))))
