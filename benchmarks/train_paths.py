@@ -60,6 +60,9 @@ def main() -> int:
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--batch", type=int, default=None, help="batch size (default the config's)")
     parser.add_argument("--views", type=int, default=2, help="baked views per mesh for the G-buffer path")
+    parser.add_argument("--large", type=int, nargs="*", default=[],
+                        help="also time the rendering pass at these render sizes (the object then framed from a "
+                             "large render, as the G-buffer views are)")
     args = parser.parse_args()
     from meshseal.train import TrainConfig
 
@@ -76,16 +79,26 @@ def main() -> int:
     print(f"config {args.config.name}: batch {config.train.batch_size}, frame {config.model.frame_size}^2, "
           f"render {config.train.render_size}^2, {args.steps} timed steps after {args.warmup}")
     out = Path(tempfile.mkdtemp(prefix="train_paths-"))
+    large_speeds = []
     try:
         config.train.gbuffer = "off"
         render, _ = measure(config, args.device, args.steps, args.warmup, out / "render")
-        print(f"rendering pass: {render:.1f} pictures/s")
+        print(f"rendering pass at {config.train.render_size}^2: {render:.1f} pictures/s")
+        size = config.train.render_size
+        for large in args.large:  # the same framing as the baked views: render large, crop around the object
+            config.train.render_size = large
+            speed, _ = measure(config, args.device, args.steps, args.warmup, out / f"render{large}")
+            print(f"rendering pass at {large}^2: {speed:.1f} pictures/s (ratio to the G-buffers below)")
+            large_speeds.append((large, speed))
+        config.train.render_size = size
         config.train.gbuffer = "auto"
         gbuffer, built = measure(config, args.device, args.steps, args.warmup, out / "gbuffer")
         print(f"cached G-buffers: {gbuffer:.1f} pictures/s (trainer built in {built:.1f} s, bake included if not cached)")
     finally:
         shutil.rmtree(out, ignore_errors=True)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    for large, speed in large_speeds:
+        print(f"ratio to the rendering pass at {large}^2: {gbuffer / speed:.2f}")
     print(f"train_render_pics_per_s={render:.2f} train_gbuffer_pics_per_s={gbuffer:.2f} ratio={gbuffer / render:.2f}")
     return 0
 

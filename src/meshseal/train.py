@@ -217,6 +217,10 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(config.seed)
         self.generator = torch.Generator().manual_seed(config.seed)
+        # Draws for the G-buffer step on a GPU come from the GPU's own generator: a copy from host memory
+        # would wait for the queued work every step. On the CPU it is the one generator.
+        self.device_generator = (torch.Generator(device=self.device).manual_seed(config.seed)
+                                 if self.device.type == "cuda" else self.generator)
         kinds = config.train.texture_kinds
         self.train_set = CachedItems(MeshDataset(config.data, "train", retexture=config.train.retexture,
                                                  seed=config.seed, texture_kinds=kinds))
@@ -236,7 +240,8 @@ class Trainer:
             part.requires_grad_(False)
         self.parameters = [p for p in self.model.parameters() if p.requires_grad]
         # eta * sum(w^2) in the loss is exactly Adam's coupled weight decay 2 * eta.
-        self.optimizer = torch.optim.Adam(self.parameters, lr=config.train.lr, weight_decay=2 * config.loss.reg) \
+        self.optimizer = torch.optim.Adam(self.parameters, lr=config.train.lr, weight_decay=2 * config.loss.reg,
+                                          fused=self.device.type == "cuda") \
             if self.parameters else None  # a spread-spectrum model has nothing to learn
         self.renderer = MeshRenderer()
         self.step = 0
@@ -348,12 +353,13 @@ class Trainer:
     def _gbuffer_step(self, index, message, distorting: bool):
         cfg, weights, bank = self.config.train, self.config.loss, self.views
         n = index.shape[0]
-        background = (random_backgrounds(n, self.generator) if cfg.background == "random" else torch.zeros(n, 3))
+        background = (random_backgrounds(n, self.generator).to(self.device) if cfg.background == "random"
+                      else torch.zeros(n, 3, device=self.device))
         attack = Distortions2D(cfg.distortion_2d) if distorting and cfg.distortion_2d > 0 else None
         share = self.world.share(n)  # this process's part of the global batch (all of it in one process)
         views, message, background = bank["train"][index[share]], message[share], background[share]
         texture, marked, original, picture, logits = self._gbuffer_pass(
-            views, bank["train_textures"][views.item], message, background.to(self.device, non_blocking=True), attack)
+            views, bank["train_textures"][views.item], message, background, attack)
         texture_term = (marked - texture).abs().mean()
         image_term = (picture - original).abs().mean()
         loss = (weights.message * message_loss(logits, message) + self.texture_weight * texture_term
@@ -399,6 +405,8 @@ class Trainer:
         tensors |= {f"optim.{k}": v for k, v in _optimizer_tensors(self.optimizer, self.parameters).items()}
         tensors["rng.generator"] = self.generator.get_state()
         tensors["rng.torch"] = torch.get_rng_state()
+        if self.device_generator is not self.generator:
+            tensors["rng.device"] = self.device_generator.get_state()
         state = {"step": self.step, "image_weight": self.image_weight, "texture_weight": self.texture_weight,
                  "elapsed": self.elapsed, "position": list(self.position)}
         save_tensors(tensors, self.out / "checkpoint.safetensors", {"state": json.dumps(state),
@@ -426,6 +434,8 @@ class Trainer:
                                 {k[6:]: v for k, v in tensors.items() if k.startswith("optim.")})
         self.generator.set_state(tensors["rng.generator"])
         torch.set_rng_state(tensors["rng.torch"])
+        if self.device_generator is not self.generator and "rng.device" in tensors:
+            self.device_generator.set_state(tensors["rng.device"])
         self.step, self.image_weight, self.elapsed = state["step"], state["image_weight"], state["elapsed"]
         self.texture_weight = state.get("texture_weight", self.texture_weight)
         self.position = tuple(state.get("position", (0, 0)))
@@ -487,7 +497,11 @@ class Trainer:
         cfg, weights = self.config.train, self.config.loss
         self.model.train()
         n = batch.shape[0] if torch.is_tensor(batch) else batch["positions"].shape[0]
-        message = torch.randint(0, 2, (n, self.model.n_bits), generator=self.generator).float().to(self.device)
+        if self.views is not None and self.step >= cfg.pretrain_steps:
+            message = torch.randint(0, 2, (n, self.model.n_bits), generator=self.device_generator,
+                                    device=self.device).float()
+        else:
+            message = torch.randint(0, 2, (n, self.model.n_bits), generator=self.generator).float().to(self.device)
         distorting = self.step >= cfg.distortion_start
         ramp = self._ramp()
         self._set_mark_power(ramp)
