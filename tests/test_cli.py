@@ -240,3 +240,21 @@ def test_output_hard_linked_to_the_input_is_refused(tmp_path, capsys):
     assert_one_line_error(code, err)
     assert "refusing to overwrite an input file" in err
     assert glb.read_bytes() == (FIXTURES / "bunny.glb").read_bytes()
+
+
+@pytest.mark.parametrize("name", ["bunny.glb", "sh3d_deckChair/deckChair.obj", "suzanne.glb"])
+def test_default_view_frames_the_object_and_lights_the_side_it_sees(name, tmp_path, capsys):
+    """The default view spans ~70 % of the frame, centred, and its key light sits beside the camera:
+    the object is brighter than under the seed's mean light (2, 1, 2) from the seed's camera."""
+    out, seed = tmp_path / "default.png", tmp_path / "seed.png"
+    assert run(capsys, "render", FIXTURES / name, "-o", out, "--width", 128, "--height", 96, "--blend", "hard")[0] == 0
+    assert run(capsys, "render", FIXTURES / name, "-o", seed, "--width", 128, "--height", 96, "--blend", "hard",
+               "--camera", "0,-2.5,3", "--light", "2,1,2")[0] == 0
+    image = np.asarray(Image.open(out)).astype(float)
+    foreground = image.max(axis=-1) > 0
+    rows, columns = np.nonzero(foreground.any(axis=1))[0], np.nonzero(foreground.any(axis=0))[0]
+    height, width = rows.max() - rows.min() + 1, columns.max() - columns.min() + 1
+    assert 0.64 <= max(height / 96, width / 128) <= 0.74, (height, width)  # the larger share of the frame
+    assert abs((rows.max() + rows.min()) / 2 - 47.5) < 4 and abs((columns.max() + columns.min()) / 2 - 63.5) < 4
+    before = np.asarray(Image.open(seed)).astype(float)
+    assert image[foreground].mean() > 1.1 * before[before.max(axis=-1) > 0].mean()

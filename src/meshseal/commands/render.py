@@ -4,6 +4,7 @@ Workbench), all with the same cameras, lights and conventions (docs/conventions.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from ..errors import MeshsealError
@@ -12,8 +13,9 @@ from ._common import Stages, colour, positive_int, sampler, vector3
 
 FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}
 
-DEFAULT_EYE = (0.0, -2.5, 3.0)  # inside the seed's camera range (x=0, y in [-3,-2], z in [2,4])
-DEFAULT_LIGHT = (2.0, 1.0, 2.0)  # the mean of the seed's light distribution
+DEFAULT_EYE = (0.0, -2.5, 3.0)  # the default view's direction: inside the seed's camera range (x=0, y in [-3,-2], z in [2,4])
+FILL = 0.7  # the default view is moved along that direction until the object spans this share of the frame
+KEY_LIGHT = (-0.4, 0.2, 0.0)  # without --light: a key light beside each camera (right, up, back, times its distance)
 MAX_SIZE = 8192
 MAX_VIEWS = 1000
 CHUNK = 8  # views rendered per batch
@@ -34,10 +36,12 @@ def register(subparsers) -> None:
     parser.add_argument("--width", type=positive_int(MAX_SIZE), default=512, help="image width (default 512)")
     parser.add_argument("--height", type=positive_int(MAX_SIZE), default=512, help="image height (default 512)")
     parser.add_argument("--camera", type=vector3, action="append", metavar="X,Y,Z",
-                        help="camera position looking at the origin, Z up (repeat for several views; "
-                             f"default {','.join(map(str, DEFAULT_EYE))} for one view)")
-    parser.add_argument("--light", type=vector3, metavar="X,Y,Z", default=DEFAULT_LIGHT,
-                        help=f"point light position (default {','.join(map(str, DEFAULT_LIGHT))})")
+                        help="camera position looking at the origin, Z up (repeat for several views; default "
+                             f"for one view: from the direction {','.join(map(str, DEFAULT_EYE))}, as close as "
+                             f"makes the object span {round(FILL * 100)}%% of the frame)")
+    parser.add_argument("--light", type=vector3, metavar="X,Y,Z", default=None,
+                        help="point light position (default: a key light beside each camera, up and to its "
+                             "left, so that the side the camera sees is lit)")
     parser.add_argument("--views", type=positive_int(MAX_VIEWS), default=1, metavar="K",
                         help="number of sampled views (default 1: the fixed default camera)")
     parser.add_argument("--seed", type=int, default=0,
@@ -71,7 +75,7 @@ def output_paths(output: Path, n_views: int) -> list[Path]:
     return [output.with_name(f"{output.stem}_{k}{output.suffix}") for k in range(n_views)]
 
 
-def _cameras(args, torch):
+def _cameras(args, torch, mesh=None):
     from ..render.cameras import Cameras, sample_any_view_cameras, sample_seed_cameras
 
     if args.camera:
@@ -79,7 +83,7 @@ def _cameras(args, torch):
             raise MeshsealError("give either --camera (once per view) or --views K, not both")
         eye = torch.tensor(args.camera, dtype=torch.float32)
     elif args.views == 1:
-        eye = torch.tensor([DEFAULT_EYE], dtype=torch.float32)
+        return framed_camera(mesh.positions, args.width / args.height)
     else:
         generator = torch.Generator().manual_seed(args.seed)
         sampler = sample_seed_cameras if args.sampler == "seed" else sample_any_view_cameras
@@ -91,6 +95,46 @@ def _cameras(args, torch):
     z_up = torch.tensor([0.0, 0.0, 1.0]).expand_as(eye)
     up = torch.where((direction[:, 2].abs() > 0.999).unsqueeze(1), torch.tensor([0.0, 1.0, 0.0]), z_up)
     return Cameras(eye, torch.zeros_like(eye), up.clone())
+
+
+def framed_camera(positions, aspect: float, direction=DEFAULT_EYE, fill: float = FILL):
+    """The camera looking along -`direction` that frames `positions` (N, 3): centred on their projected
+    box, as close as makes the box's larger side `fill` of the frame's (fov_y 60)."""
+    import torch
+
+    from ..render.cameras import Cameras
+
+    unit = torch.nn.functional.normalize(torch.tensor([direction], dtype=torch.float32), dim=-1)
+    at, distance = torch.zeros(1, 3), float(torch.tensor(direction).norm())
+    up = torch.tensor([[0.0, 0.0, 1.0]])
+    right = torch.nn.functional.normalize(torch.cross(-unit, up, dim=-1), dim=-1)
+    true_up = torch.cross(right, -unit, dim=-1)
+    points = positions.detach().float().cpu()[None]
+    half_height = math.tan(math.radians(60.0) / 2)
+    for _ in range(6):  # the box shrinks about as 1/distance; a few rounds settle it
+        camera = Cameras(at + unit * distance, at.clone(), up.clone())
+        clip = camera.world_to_clip(points, aspect)[0]
+        ndc = clip[:, :2] / clip[:, 3:].clamp_min(1e-6)
+        low, high = ndc.min(0).values, ndc.max(0).values
+        centre, span = (low + high) / 2, float(((high - low) / 2).max())
+        at = at + (right * float(centre[0]) * aspect + true_up * float(centre[1])) * distance * half_height
+        distance *= span / fill
+    return Cameras(at + unit * distance, at, up)
+
+
+def key_lights(cameras):
+    """One point light per camera beside it (KEY_LIGHT: right, up and back in the camera's frame, times
+    its distance to what it looks at), so that what the camera sees is lit from the front."""
+    import torch
+
+    from ..render import lights_at
+
+    forward = torch.nn.functional.normalize(cameras.at - cameras.eye, dim=-1)
+    right = torch.nn.functional.normalize(torch.cross(forward, cameras.up, dim=-1), dim=-1)
+    true_up = torch.cross(right, forward, dim=-1)
+    distance = (cameras.at - cameras.eye).norm(dim=-1, keepdim=True)
+    x, y, z = KEY_LIGHT
+    return lights_at(cameras.eye + distance * (x * right + y * true_up - z * forward))
 
 
 def _engine_options(args) -> dict:
@@ -124,8 +168,9 @@ def run(args: argparse.Namespace) -> int:
     for path in paths:
         check_output(path, protected)
     mesh = normalize(to_z_up(mesh))
-    cameras = _cameras(args, torch)
-    lights = lights_at(torch.tensor([args.light], dtype=torch.float32).expand(len(cameras), 3))
+    cameras = _cameras(args, torch, mesh)
+    lights = (key_lights(cameras) if args.light is None else
+              lights_at(torch.tensor([args.light], dtype=torch.float32).expand(len(cameras), 3)))
     renderer = make_renderer(args.engine, **_engine_options(args))
     chunk = CHUNK if args.engine in ("ours", "gl") else len(cameras)  # Blender: one process for all views
     stage(f"rendering {len(cameras)} view{'s' if len(cameras) > 1 else ''} with {args.engine}")
