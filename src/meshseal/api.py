@@ -82,7 +82,10 @@ class Detection:
     decoded text or ID, None when not detected or not decodable; bits: the raw hard bits '0101...';
     soft: the soft bits (matched-filter z, mean 0 and variance 1 each without a mark; learned models: logits);
     errors_corrected: raw bits the error correction flipped. `box` is the object's square box (cx, cy,
-    half) in the picture; `camera` 'metadata' or 'registered' for informed models.
+    half) in the picture; `camera` 'metadata' or 'registered' for informed models. `silhouette_iou`:
+    the original's silhouette under the picture's camera against the picture's object (registered
+    pictures; pictures whose camera came from metadata when they read no mark); `reason`: why no mark
+    was read, where a plausible mistake explains it (`Watermarker.why_not`), else None.
     """
 
     bits: str
@@ -128,7 +131,7 @@ class _Reading:
     found: object = None  # the Cameras used to un-render (informed models)
     tries: int = 1  # what `decide` multiplies the p-value by for the cameras a second look could try
     second_look: tuple = ()  # registered: (picture, mask, Registration.alternatives), until `look_again`
-    silhouette_iou: float | None = None  # camera from metadata: the original's silhouette under it against the picture's object
+    object_mask: torch.Tensor | None = None  # camera from metadata: the picture's object (H, W) bool, for `why_not`
 
 
 MIN_PICTURE_SIDE = 16  # smaller pictures cannot show the object's texture; refused at once
@@ -413,9 +416,13 @@ class Watermarker:
         single = not isinstance(images, (list, tuple))
         readings = [self.look_again(self.read(image, original, register, fov_y), original, key, expect, search=not pool)
                     for image in ([images] if single else images)]
-        results = [self.decide(readings, key, expect)] if pool else [self.decide([r], key, expect) for r in readings]
-        for result in results:
-            result.reason = self.why_not(result, original, key)
+        if pool:
+            results = [self.decide(readings, key, expect)]
+            results[0].reason = self.why_not(results[0], original, key)
+        else:
+            results = [self.decide([r], key, expect) for r in readings]
+            for result, reading in zip(results, readings):
+                result.reason = self.why_not(result, original, key, reading)
         return results[0] if single or pool else results
 
     def look_again(self, reading: _Reading, original, key=None, expect=None, search: bool = True) -> _Reading:
@@ -488,8 +495,7 @@ class Watermarker:
         extra = {"box": first.box if len(readings) == 1 else None, "camera": first.camera,
                  "registration_iou": first.registration_iou if len(readings) == 1 else None,
                  "pictures": len(readings),
-                 "silhouette_iou": (first.silhouette_iou if first.silhouette_iou is not None else first.registration_iou)
-                 if len(readings) == 1 else None}
+                 "silhouette_iou": first.registration_iou if len(readings) == 1 else None}
         evidence = torch.stack([r.evidence for r in readings]).sum(0, keepdim=True)
         weights, tries = None, 1
         expected = payload.encode(expect, key, self.n_bits) if expect is not None and self.n_bits in payload.SCHEMAS else None
@@ -537,17 +543,22 @@ class Watermarker:
         best = max(range(len(parts)), key=scores.__getitem__)
         return softs[best], bit_weights(encoder, parts[best], key_seed)[0].double(), len(parts)
 
-    def why_not(self, result: Detection, original, key=None) -> str | None:
+    def why_not(self, result: Detection, original, key=None, reading: _Reading | None = None) -> str | None:
         """Why a picture read no mark, where a plausible mistake explains it, else None: the mesh
         given as the original is itself marked under `key` (`own_mark_pvalue` under the FPR: a
         picture of it then reads nothing against it), or the picture's object does not match the
         original's silhouette under the picture's camera (IoU under SHOWS_MESH_BELOW: another mesh,
         or a registration gone astray). A mark made under another key is not told apart from no mark
-        (docs/payload.md)."""
+        (docs/payload.md). A picture whose camera came from its metadata gets its silhouette IoU
+        here (`result.silhouette_iou`), from its `reading`, only when it read no mark."""
         from . import payload
 
         if result.detected is not False or original is None:
             return None
+        if result.silhouette_iou is None and reading is not None and reading.object_mask is not None:
+            from .register import silhouette_iou
+
+            result.silhouette_iou = silhouette_iou(self._on_cpu(original), reading.found.to("cpu"), reading.object_mask)
         key_seed = self._key_seed(key)
         if self._own_of is None or self._own_of[0] is not original or self._own_of[1] != key_seed:
             self._own_of = (original, key_seed, self.own_mark_pvalue(original, key))
@@ -637,11 +648,9 @@ class Watermarker:
             corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
             box = box_from_points(corners.reshape(-1, 2), height, width)
             evidence, source = self._evidence(original, tensor.clamp(0, 1), camera), "given" if given else "metadata"
-            if from_metadata:  # does the picture show this mesh where its camera says? (`why_not`)
-                from .register import silhouette_iou
-
-                shown = silhouette_iou(self._on_cpu(original), camera.to("cpu"), torch.from_numpy(mask > 0.5))
-                return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera, silhouette_iou=shown)
+            if from_metadata:  # kept for `why_not`: does the picture show this mesh where its camera says?
+                return _Reading(evidence, tuple(float(v) for v in box[0]), source, iou, camera,
+                                object_mask=torch.from_numpy(np.ascontiguousarray(mask > 0.5)))
         else:
             box = boxes_from_mask(torch.from_numpy(mask)[None])
             background_tensor = torch.tensor(background, dtype=tensor.dtype)[None].to(self.device)

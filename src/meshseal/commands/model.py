@@ -439,7 +439,7 @@ def _report(args, watermarker, original, path, reading, error, progress, key, ex
         readings.append(reading)
         return 0
     result = watermarker.decide([reading], key, expect)
-    result.reason = watermarker.why_not(result, original, key)
+    result.reason = watermarker.why_not(result, original, key, reading)
     decisions.append(result.detected)
     line = json.dumps({"image": str(path)} | result.to_dict()) if args.json else f"{path}: {_describe(result, expect)}"
     if progress is not None and not args.json:
