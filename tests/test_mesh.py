@@ -514,8 +514,11 @@ def test_saved_files_honour_the_umask(tmp_path, umask):
         written = save(load(FIXTURES / "sh3d_deckChair" / "deckChair.obj"), tmp_path / "chair.obj")
         written += save(load(FIXTURES / "bunny.glb"), tmp_path / "bunny.glb")
         mesh_io.atomic_write(tmp_path / "one.png", b"x")
+        from meshseal.models.io import save_tensors
+
+        save_tensors({"w": torch.zeros(2)}, tmp_path / "model.safetensors", {"format": "test"})
     finally:
         os.umask(previous)
     assert len(written) >= 5
-    for path in [*written, tmp_path / "one.png"]:
+    for path in [*written, tmp_path / "one.png", tmp_path / "model.safetensors"]:
         assert (path.stat().st_mode & 0o777) == 0o666 & ~umask, path
