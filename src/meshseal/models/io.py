@@ -22,10 +22,10 @@ def save_tensors(tensors: dict[str, torch.Tensor], path, metadata: dict[str, str
     from ..mesh.io import file_mode
 
     handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.fchmod(handle, file_mode())  # mkstemp makes it 0600: give the output the umask's permissions
     os.close(handle)
     try:
         save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, temp, metadata=metadata)
+        os.chmod(temp, file_mode())  # mkstemp's file is 0600: give the output the umask's permissions
         os.replace(temp, path)
     finally:
         if os.path.exists(temp):
