@@ -79,7 +79,7 @@ def register(subparsers) -> None:
     evaluate = subparsers.add_parser("eval", help="measure a model on a dataset split")
     evaluate.add_argument("--data", type=Path, required=True, help="dataset folder (meshseal data build)")
     evaluate.add_argument("--split", default="test", choices=("train", "test", "test_cc0", "all"))
-    evaluate.add_argument("--model", default=None, help="shipped model name or .safetensors path")
+    evaluate.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
     evaluate.add_argument("--views", type=positive_int(100), default=1, help="views per mesh (default 1)")
     evaluate.add_argument("--meshes", type=int, default=None, help="at most this many meshes (default all)")
     evaluate.add_argument("--protocol", choices=("seed",), default=None,
