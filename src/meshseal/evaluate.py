@@ -26,7 +26,13 @@ from .render import MeshRenderer
 def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views: int = 1, seed: int = 0,
              render_size: int = 128, sampler: str = "seed", batch_size: int = 8,
              distortions_3d: Distortions3D | None = None, distortions_2d: Distortions2D | None = None,
-             unrender_jitter: float = 0.0) -> dict:
+             unrender_jitter: float = 0.0, progress: bool = False) -> dict:
+    """Bit accuracy and what the mark changed over `n_meshes` of `dataset` x `views` (see `meshseal
+    eval`); `progress`: a bar of the meshes read on stderr."""
+    import sys
+
+    from tqdm import tqdm
+
     was_training = model.training
     model.eval()
     generator = torch.Generator().manual_seed(seed + 1_000_003)
@@ -35,6 +41,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
     accuracies, psnrs, ssims, texture_psnrs, normal_l1, uv_l1, seen = [], [], [], [], [], [], []
     render_l1, texture_l1, texture_ssims, shown_psnrs = [], [], [], []
     device = model.device
+    bar = tqdm(total=views * count, unit="mesh", file=sys.stderr, disable=not progress)
     for view in range(views):
         for start in range(0, count, batch_size):
             items = [dataset[i] for i in range(start, min(count, start + batch_size))]
@@ -56,6 +63,8 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
             texture_ssims.append(ssim(out.texture_marked, out.texture))
             normal_l1.append(masked_l1(out.normals_marked, out.normals, mask).reshape(1))
             uv_l1.append(masked_l1(out.uvs_marked, out.uvs, mask).reshape(1))
+            bar.update(n)
+    bar.close()
     model.train(was_training)
     accuracy = torch.cat(accuracies)
     finite = lambda values: values[torch.isfinite(values)]  # noqa: E731 (identical images: infinite PSNR)

@@ -541,7 +541,8 @@ def run_eval(args) -> int:
     else:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
-                           distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None)
+                           distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None,
+                           progress=sys.stderr.isatty())
     metrics = {"model": watermarker.name, "split": args.split, "sampler": args.sampler,
                "protocol": args.protocol or "ours", "texture_kinds": kinds or "all",
                "size": list(size) if isinstance(size, tuple) else size} | metrics
