@@ -553,8 +553,8 @@ class Watermarker:
         here (`result.silhouette_iou`), from its `reading`, only when it read no mark."""
         from . import payload
 
-        if result.detected is not False or original is None:
-            return None
+        if result.detected is not False or result.message is not None or original is None:
+            return None  # (a message read, but not the one --expect names: no mistake to explain)
         if result.silhouette_iou is None and reading is not None and reading.object_mask is not None:
             from .register import silhouette_iou
 
