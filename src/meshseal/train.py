@@ -180,7 +180,8 @@ def _load_optimizer_tensors(optimizer, parameters, tensors) -> None:
     for name, value in tensors.items():
         index, key = name.split(".", 1)
         parameter = parameters[int(index)]
-        optimizer.state[parameter][key] = value if key == "step" else value.to(parameter.device)  # Adam keeps step on the CPU
+        fused = any(group.get("fused") for group in optimizer.param_groups)  # fused Adam keeps its step beside the weights
+        optimizer.state[parameter][key] = value if key == "step" and not fused else value.to(parameter.device)
 
 
 class CachedItems:
@@ -367,6 +368,33 @@ class Trainer:
         stats = {"psnr_render": psnr(picture.detach(), original).mean(),
                  "psnr_texture": psnr(marked.detach(), texture).mean(), "stage": 2}
         return loss, logits, stats, message
+
+    @torch.no_grad()
+    def recalibrate_batch_norm(self, batches: int = 16) -> None:
+        """Batch-norm statistics measured afresh with the current weights over `batches` training
+        batches (cumulative, not the running average of the weights' history): a decoder whose input
+        changes as the mark is squeezed reads far better with them. Its own generator, so training's
+        draws are untouched."""
+        norms = [m for m in self.model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+        if not norms or self.views is None:
+            return
+        bank, was_training = self.views, self.model.training
+        generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + self.step)
+        for norm in norms:
+            norm.reset_running_stats()
+            norm.momentum_kept, norm.momentum = norm.momentum, None
+        self.model.train()
+        size, share = self.config.train.batch_size, self.world.share(self.config.train.batch_size)
+        for _ in range(batches):  # global batches, each process its share (batch norm sees the global batch)
+            index = torch.randint(len(bank["train"]), (size,), generator=generator)[share].to(self.device)
+            message = torch.randint(0, 2, (size, self.model.n_bits), generator=generator)[share].float().to(self.device)
+            views = bank["train"][index]
+            self._gbuffer_pass(views, bank["train_textures"][views.item], message,
+                               torch.zeros(len(index), 3, device=self.device))
+        for norm in norms:
+            norm.momentum = norm.momentum_kept
+            del norm.momentum_kept
+        self.model.train(was_training)
 
     @torch.no_grad()
     def validate_gbuffers(self) -> dict:
@@ -628,6 +656,9 @@ class Trainer:
                 bar.set_postfix(acc=f"{sum(recent) / len(recent):.3f}", psnr=f"{values[-1][2]:.1f}",
                                 stage=pending[-1][1]["stage"])
                 pending = []
+            if self.views is not None and (self.step % cfg.val_every == 0 or self.step % cfg.checkpoint_every == 0
+                                           or last or overdue):
+                self.recalibrate_batch_norm()  # what validation reads and the weights keep
             if main and (self.step % cfg.val_every == 0 or last):
                 metrics = self.validate_gbuffers() if self.views is not None else evaluate(
                     self.model, self.val_set, n_meshes=cfg.val_meshes, views=1, seed=self.config.seed,
@@ -640,7 +671,6 @@ class Trainer:
                           f"ssim_render {metrics['ssim_render']:.4f} psnr_texture {metrics['psnr_texture']:.2f} "
                           f"({self.step / max(self.elapsed, 1e-9) * 60:.0f} steps/min)")
                 plot_curves(self.out)
-            overdue = cfg.checkpoint_minutes is not None and time.time() - saved_at > 60 * cfg.checkpoint_minutes
             if self.step % cfg.checkpoint_every == 0 or last or overdue:
                 self._checkpoint()
                 saved_at = time.time()

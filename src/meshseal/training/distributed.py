@@ -104,10 +104,11 @@ class GlobalBatchNorm2d(nn.BatchNorm2d):
         var = (moments[channels:2 * channels] / total - mean * mean).clamp_min(0.0)
         if self.track_running_stats:
             with torch.no_grad():
-                momentum = self.momentum if self.momentum is not None else 0.1
+                self.num_batches_tracked.add_(1)
+                # momentum None: a cumulative average, as BatchNorm2d keeps it
+                momentum = self.momentum if self.momentum is not None else 1.0 / float(self.num_batches_tracked)
                 self.running_mean.mul_(1 - momentum).add_(momentum * mean.detach())
                 self.running_var.mul_(1 - momentum).add_(momentum * var.detach() * total / (total - 1))
-                self.num_batches_tracked.add_(1)
         shape = (1, channels, 1, 1)
         out = (x - mean.reshape(shape)) / torch.sqrt(var.reshape(shape) + self.eps)
         if self.affine:
