@@ -231,7 +231,7 @@ def run_child(figure: str, source: Path, work: Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--ref", default="HEAD~1", help="reference commit (default HEAD~1)")
+    parser.add_argument("--ref", default="HEAD~1", help="reference commit (default HEAD~1; none: this tree only)")
     parser.add_argument("--conditions", default=",".join(CONDITIONS))
     parser.add_argument("--figures", default=",".join(FIGURES))
     parser.add_argument("--child", choices=FIGURES, help=argparse.SUPPRESS)
@@ -240,6 +240,7 @@ def main() -> None:
     if args.child:
         print(json.dumps(globals()[f"child_{args.child}"](args.work)))
         return
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # `timeout` or kill: the competitors still end
     figures = [f for f in args.figures.split(",") if f]
     conditions = [c for c in args.conditions.split(",") if c]
     if "blender" in conditions and importlib.util.find_spec("bpy") is None:
@@ -247,17 +248,20 @@ def main() -> None:
         conditions.remove("blender")
     if "quiet" not in conditions:
         conditions.insert(0, "quiet")
-    ref = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", args.ref], check=True, capture_output=True,
-                         text=True).stdout.strip()
+    ref = None if args.ref == "none" else subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", args.ref], check=True, capture_output=True, text=True).stdout.strip()
     results: dict = {}
     loads: dict = {}
     with tempfile.TemporaryDirectory() as folder:
         work, ref_root = Path(folder) / "work", Path(folder) / "ref"
         work.mkdir()
         ref_root.mkdir()
-        archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "src"], check=True, capture_output=True).stdout
-        subprocess.run(["tar", "-x", "-C", str(ref_root)], input=archive, check=True)
-        codes = {f"ref {ref}": ref_root / "src", "this tree": ROOT / "src"}
+        codes = {"this tree": ROOT / "src"}
+        if ref is not None:
+            archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "src"], check=True,
+                                     capture_output=True).stdout
+            subprocess.run(["tar", "-x", "-C", str(ref_root)], input=archive, check=True)
+            codes = {f"ref {ref}": ref_root / "src"} | codes
         print(f"{len(os.sched_getaffinity(0))} cores; load average at start {os.getloadavg()}; preparing pictures")
         prepare(work)
         for code, source in codes.items():  # warm-up: numba compiles into each code's own cache
@@ -287,7 +291,7 @@ def report(results, loads, figures, conditions, codes) -> None:
     print("| figure | code | " + " | ".join(f"{c} (load {loads[c]:.1f})" for c in conditions) + " |")
     print("|---|---|" + "---|" * len(conditions))
     pairs = []
-    new, ref = codes[1], codes[0]
+    new, ref = codes[-1], (codes[0] if len(codes) > 1 else None)
     for figure in figures:
         for code in codes:
             quiet = results[(figure, "quiet", code)]["value"]
@@ -298,9 +302,11 @@ def report(results, loads, figures, conditions, codes) -> None:
                 if condition != "quiet":
                     cell += f" ({value / quiet:.2f}x quiet)"
                 if code == new:
-                    cell += f", {value / results[(figure, condition, ref)]['value']:.2f}x ref"
-                    pairs += [f"{figure}_{condition}={value:.4g}",
-                              f"{figure}_{condition}_xref={value / results[(figure, condition, ref)]['value']:.3f}"]
+                    pairs.append(f"{figure}_{condition}={value:.4g}")
+                    if ref is not None:
+                        ratio = value / results[(figure, condition, ref)]["value"]
+                        cell += f", {ratio:.2f}x ref"
+                        pairs.append(f"{figure}_{condition}_xref={ratio:.3f}")
                     if condition != "quiet":
                         pairs.append(f"{figure}_{condition}_xquiet={value / quiet:.3f}")
                 cells.append(cell)
