@@ -407,12 +407,13 @@ def run_detect(args) -> int:
     if args.pool and readings:
         result = watermarker.decide(readings, key, expect)
         result.reason = watermarker.why_not(result, original, key)
-        decisions.append(result.detected)
+        decisions.append(result)
         print(json.dumps(result.to_dict()) if args.json else f"{len(readings)} pictures pooled: {_describe(result, expect)}")
-    if not failed and key is None and decisions and not any(decisions) and watermarker.calibrated:
+    if (not failed and key is None and decisions and watermarker.calibrated
+            and not any(r.detected or r.reason or r.message is not None for r in decisions)):
         print("meshseal: note: read under the public key (no --key, no $MESHSEAL_KEY): a mark made under a "
               "secret key reads as no mark", file=sys.stderr)
-    return detect_status(failed, decisions)
+    return detect_status(failed, [r.detected for r in decisions])
 
 
 def detect_status(failed: int, decisions: list) -> int:
@@ -425,7 +426,7 @@ def detect_status(failed: int, decisions: list) -> int:
 
 
 def _report(args, watermarker, original, path, reading, error, progress, key, expect, readings, decisions) -> int:
-    """Print one picture's line (or keep its reading for the pool; its decision goes to `decisions`);
+    """Print one picture's line (or keep its reading for the pool; its Detection goes to `decisions`);
     1 if it could not be read."""
     if error is not None:
         (progress.write if progress else lambda line: print(line, file=sys.stderr))(f"meshseal: error: {error}")
@@ -440,7 +441,7 @@ def _report(args, watermarker, original, path, reading, error, progress, key, ex
         return 0
     result = watermarker.decide([reading], key, expect)
     result.reason = watermarker.why_not(result, original, key, reading)
-    decisions.append(result.detected)
+    decisions.append(result)
     line = json.dumps({"image": str(path)} | result.to_dict()) if args.json else f"{path}: {_describe(result, expect)}"
     if progress is not None and not args.json:
         progress.write(line)
