@@ -85,3 +85,19 @@ def test_worker_environment_is_one_thread():
     environment = threads.worker_environment()
     assert all(environment[name] == "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"))
     assert environment["OMP_WAIT_POLICY"] in ("PASSIVE", os.environ.get("OMP_WAIT_POLICY"))
+
+
+def test_the_dataset_builders_workers_start_with_one_thread(monkeypatch):
+    """`meshseal data build`'s pools (spawned) set one thread in each worker before it imports torch,
+    whatever the parent's count."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    import meshseal.data.build  # noqa: F401 (the package's `build` is the function; the module is in sys.modules)
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "2")
+    module = sys.modules["meshseal.data.build"]
+    with ProcessPoolExecutor(max_workers=1, mp_context=module._SPAWN, **module._ONE_THREAD) as executor:
+        seen = [executor.submit(os.getenv, name).result() for name in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS",
+                                                                            "OMP_WAIT_POLICY")]
+    assert seen[:2] == ["1", "1"] and seen[2] in ("PASSIVE", os.environ.get("OMP_WAIT_POLICY"))
