@@ -14,6 +14,10 @@ many times the work. The policy:
 - idle threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, `KMP_BLOCKTIME=0`);
 - a count the user gives wins: `MESHSEAL_THREADS`, else `OMP_NUM_THREADS`.
 
+numba keeps the threading layer it picks itself (OpenMP here, TBB being absent): with idle threads
+asleep it no longer competes, and the other choice, `workqueue`, must not be entered from two threads at
+once.
+
 `configure()` writes the settings into the environment, which the OpenMP runtimes, MKL and numba read
 when they start; call it before torch and numba are imported (the command line does, first thing).
 Where they are already imported it also sets their thread counts directly (`torch.set_num_threads`,
