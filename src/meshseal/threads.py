@@ -14,7 +14,7 @@ many times the work. The policy:
 - idle threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, `KMP_BLOCKTIME=0`);
 - a count the user gives wins: `MESHSEAL_THREADS`, else `OMP_NUM_THREADS`.
 
-numba keeps the threading layer it picks itself (OpenMP here, TBB being absent): with idle threads
+numba keeps the threading layer it picks itself (OpenMP where TBB is not installed): with idle threads
 asleep it no longer competes, and the other choice, `workqueue`, must not be entered from two threads at
 once.
 
