@@ -25,7 +25,11 @@ COMMANDS = [["--help"], ["--version"], ["render", "--help"], ["info", "--help"],
             ["data", "build", "--help"], ["embed", "--help"], ["detect", "--help"], ["eval", "--help"],
             ["models", "--help"]]
 BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", "-o", "x.png", "--width", "-3"],
-                 ["detect", "x.png", "--workers", "0"]]
+                 ["detect", "x.png", "--workers", "0"],
+                 # files that are not there: answered before the model or the mesh is loaded
+                 ["detect", "no_such_picture.png", "--mesh", "no_such_mesh.glb"], ["info", "no_such_mesh.obj"],
+                 ["embed", "no_such_mesh.glb", "-o", "out.glb", "--message", "ab"],
+                 ["render", "no_such_mesh.glb", "-o", "out.png"]]
 
 
 def probe(argvs):
@@ -44,6 +48,7 @@ def test_bad_arguments_are_refused_without_the_heavy_libraries():
     assert result["loaded"] == []
     assert set(result["codes"].values()) == {2}
     assert result["stderr"].count("meshseal: error:") == len(BAD_ARGUMENTS)
+    assert "no_such_mesh.glb: no such mesh file" in result["stderr"]
 
 
 SUBMODULE_FIRST = """

@@ -37,6 +37,18 @@ def colour(text: str) -> tuple[float, float, float]:
 
 
 
+def require_files(*checks) -> None:
+    """(path, what) pairs: a one-line error for the first path that is not there, before any heavy import,
+    so a mistyped name is answered at once. None paths are skipped; folders count as there."""
+    from pathlib import Path
+
+    from ..errors import MeshsealError
+
+    for path, what in checks:
+        if path is not None and not Path(path).exists():
+            raise MeshsealError(f"{path}: no such {what}")
+
+
 SAMPLERS = {"paper": "seed", "seed": "seed", "any": "any"}  # 'seed' (the seed paper's): the older name of 'paper'
 
 

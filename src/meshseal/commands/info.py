@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from ._common import require_files
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("info", help="describe a mesh file",
@@ -70,6 +72,7 @@ def _text(info: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    require_files((args.mesh, "mesh file"))
     from ..mesh import load
 
     info = describe(load(args.mesh, up_axis=args.up), args.mesh)

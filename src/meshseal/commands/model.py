@@ -11,7 +11,7 @@ from contextlib import closing
 from pathlib import Path
 
 from ..errors import MeshsealError
-from ._common import Stages, available_cores, positive_int, sampler
+from ._common import Stages, available_cores, positive_int, require_files, sampler
 
 
 def register(subparsers) -> None:
@@ -266,6 +266,7 @@ def run_embed(args) -> int:
     if args.message is not None and not args.message.strip():
         raise MeshsealError("--message is empty (or only spaces): give the text to hide (the default model holds 4 bytes), "
                             "or an asset ID with --id")
+    require_files((args.input, "mesh file"))
     stage = Stages()
     stage(f"loading the model and {args.input.name}")
     from ..api import load
@@ -355,7 +356,7 @@ def picture_paths(paths: list[Path]) -> list[Path]:
 def _describe(result, expect=None) -> str:
     """One line for a person: the decision, the message, the evidence."""
     how = "" if result.camera is None else f", camera: {result.camera}"
-    if result.registration_iou is not None:
+    if result.registration_iou is not None and "silhouette IoU" not in (result.reason or ""):  # said once
         how += f" (silhouette IoU {result.registration_iou:.3f})"
     if result.detected is None:
         return f"bits {result.bits}{how}"
@@ -371,6 +372,7 @@ def _describe(result, expect=None) -> str:
 
 
 def run_detect(args) -> int:
+    require_files((args.mesh, "mesh file"), *((path, "picture or folder") for path in args.images))
     stage = Stages()
     stage("loading the model" + (f" and {args.mesh.name}" if args.mesh is not None else ""))
     from ..api import load
