@@ -101,3 +101,31 @@ def test_the_dataset_builders_workers_start_with_one_thread(monkeypatch):
         seen = [executor.submit(os.getenv, name).result() for name in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS",
                                                                             "OMP_WAIT_POLICY")]
     assert seen[:2] == ["1", "1"] and seen[2] in ("PASSIVE", os.environ.get("OMP_WAIT_POLICY"))
+
+
+RECONFIGURE = """
+import os
+for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MESHSEAL_THREADS"):
+    os.environ.pop(name, None)
+from meshseal import threads
+threads.configure(1)
+import numba, numpy as np
+
+def total(x):
+    s = 0.0
+    for i in numba.prange(x.shape[0]):
+        s += x[i]
+    return s
+
+numba.njit(parallel=True)(total)(np.ones(100))
+threads.configure(2)  # a later command in the same process (tests call the command line in-process)
+print(numba.njit(parallel=True)(total)(np.ones(100)), numba.get_num_threads())
+"""
+
+
+def test_a_second_policy_in_one_process_leaves_numbas_running_pool_alone():
+    """numba refuses a new NUMBA_NUM_THREADS once its pool runs: a later `configure` (the load changed
+    between two in-process commands) sets the count through numba.set_num_threads only."""
+    out = subprocess.run([sys.executable, "-c", RECONFIGURE], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-1500:]
+    assert out.stdout.split()[0] == "100.0"

@@ -88,6 +88,8 @@ def configure(threads: int | None = None, worker: bool = False) -> int:
         os.environ.setdefault(name, value)
     own = worker or threads is not None or bool(os.environ.get(ENV, "").strip())
     for name in _COUNTS:
+        if name == "NUMBA_NUM_THREADS" and "numba" in sys.modules:
+            continue  # numba re-reads it and refuses a change once its pool runs: set_num_threads below
         if own or not os.environ.get(name, "").strip():
             os.environ[name] = str(n)
     if "torch" in sys.modules:
