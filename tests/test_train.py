@@ -304,6 +304,19 @@ def test_camera_known_eval_reads_as_shipped_without_registering(dataset, monkeyp
     assert known["tpr_known_camera"] == full["tpr_known_camera"]
 
 
+def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
+    """`meshseal eval --attacks`: each picture read again after each attack, one row an attack; the
+    attacks that move the camera need --register; the untouched row reads as the plain reading."""
+    assert main(["eval", "--data", str(dataset), "--meshes", "2", "--size", "64", "--attacks", "none,jpeg75",
+                 "--json"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert list(report["attacks"]) == ["none", "jpeg75"]
+    assert all(row["pictures"] == 2 and 0.0 <= row["bit_acc"] <= 1.0 for row in report["attacks"].values())
+    assert report["attacks"]["none"]["detected"] == report["tpr_known_camera"]
+    assert main(["eval", "--data", str(dataset), "--meshes", "1", "--attacks", "resize0.5"]) == 2
+    assert "add --register" in capsys.readouterr().err
+
+
 def test_registered_eval_marks_each_mesh_under_embeds_flip_budget(dataset):
     """Each mesh is marked as `meshseal embed` marks it, within the FLIP budget: a budget out of reach
     lowers every mesh's strength to the floor, which the texture PSNR shows; none marks at strength 1."""

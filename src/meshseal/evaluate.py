@@ -13,6 +13,7 @@ import time
 import numpy as np
 import torch
 
+from .attacks import apply as attack_picture
 from .data.dataset import collate
 from .distortions import Distortions2D, Distortions3D
 from .losses import bit_accuracy, masked_l1, psnr, ssim
@@ -90,7 +91,7 @@ def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views:
 
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
                         size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
-                        max_flip: float | None = MAX_FLIP) -> dict:
+                        max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None) -> dict:
     """Informed models end to end, as `meshseal detect --register` runs: each test mesh is watermarked
     (with an error-corrected 32-bit ID when the model has a payload schema, else random raw bits),
     rendered `views` times (size x size 8-bit pictures, random views and lights from `sampler`'s
@@ -102,7 +103,11 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     `register` False skips registration: the camera-known figures alone, as `meshseal detect` reads
     pictures with camera metadata (fast enough for the whole split). Calibrated models mark each mesh
     under `meshseal embed`'s FLIP budget `max_flip` (its 4 seed views; None: strength 1 throughout) and
-    report the mean strength used and the share of meshes whose strength the budget lowered."""
+    report the mean strength used and the share of meshes whose strength the budget lowered.
+    `attacks` (names of `meshseal.attacks`): each 8-bit picture is also read after each attack (JPEG,
+    WebP, resizing, crops, a screenshot, ...), registered (or, without `register`, with its camera:
+    photometric attacks only), and `result["attacks"]` gives per attack the pictures, the share
+    detected and read exactly, the bit accuracy and the seconds a picture."""
     from . import payload
     from .api import PALETTE_WARNING, Watermarker
     from .models.spread import palette_share
@@ -120,6 +125,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     renderer = MeshRenderer()
     count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
     rows, pooled = [], []
+    attacked = {name: [] for name in attacks or []}
     device = model.device
     for index in range(count):
         batch = collate([dataset[index]], device)
@@ -187,6 +193,21 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
                                "strength": strength})
+            for number, name in enumerate(attacked):
+                rng = np.random.default_rng([seed, index, view, number])
+                hit = attack_picture(name, np.round(picture * 255).astype(np.uint8), rng).astype(np.float32) / 255.0
+                started = time.perf_counter()
+                if register:
+                    got = _read_or_none(watermarker, hit, original, register=True)
+                    got = None if got is None else watermarker.look_again(got, original)
+                else:
+                    got = _read_or_none(watermarker, hit, original, camera=cameras[[view]])
+                decision = None if got is None else watermarker.decide([got])
+                attacked[name].append({
+                    "bit_acc": 0.5 if decision is None else agree(decision),
+                    "detected": coded and decision is not None and bool(decision.detected),
+                    "exact": coded and decision is not None and decision.message == identity,
+                    "seconds": time.perf_counter() - started})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
@@ -224,11 +245,15 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                       "flip_object": mean("flip_object", part) if part else None}
                                for name, part in (("uv_mapped", [r for r in rows if not r["palette"]]),
                                                   ("palette", [r for r in rows if r["palette"]]))}
+    if attacked:
+        result["attacks"] = {name: {"pictures": len(part), "detected": mean("detected", part) if coded else None,
+                                    "exact": mean("exact", part) if coded else None, "bit_acc": mean("bit_acc", part),
+                                    "seconds": mean("seconds", part)} for name, part in attacked.items()}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
             "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "max_flip", "strength_mean", "strength_lowered",
-            "seconds_per_picture", "n_meshes", "n_views", "size")}
+            "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
     return result
 
 

@@ -103,6 +103,11 @@ def register(subparsers) -> None:
     evaluate.add_argument("--max-flip", type=_budget, default=None,
                           help="with --register, spread-spectrum models: mark each mesh under this FLIP budget, as "
                                "`meshseal embed` does (default 0.03; 0: strength 1 throughout)")
+    evaluate.add_argument("--attacks", default=None, metavar="LIST",
+                          help="informed models: also read every picture after each of these attacks, comma-"
+                               "separated, or 'all' (none, jpeg95, jpeg90, jpeg75, jpeg50, webp80, resize0.5, "
+                               "resize0.75, resize1.5, crop0.8, screenshot, brightness, noise2); the resizes, the crop "
+                               "and the screenshot need --register. Prints one row an attack")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(func=run_eval)
 
@@ -534,13 +539,27 @@ def run_eval(args) -> int:
     if len(dataset) == 0:
         kinds_note = f" of texture kinds {','.join(kinds)}" if kinds else ""
         raise MeshsealError(f"{args.data}: the {args.split} split has no items{kinds_note}")
-    if args.register:
+    attacks = None
+    if args.attacks is not None:
+        from ..attacks import GEOMETRIC, parse
+
+        try:
+            attacks = parse(args.attacks)
+        except ValueError as error:
+            raise MeshsealError(f"--attacks: {error}") from None
+        if not watermarker.informed:
+            raise MeshsealError(f"--attacks is for informed models; '{watermarker.name}' reads pictures blind")
+        moved = [name for name in attacks if name in GEOMETRIC]
+        if moved and not args.register:
+            raise MeshsealError(f"--attacks {','.join(moved)} change the picture's camera: add --register")
+    if args.register or attacks:
         if not watermarker.informed:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
         log = None if args.json else print
         max_flip = MAX_FLIP if args.max_flip is None else (args.max_flip or None)
         metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(size, 64),
-                                      args.sampler, log, views=args.views, max_flip=max_flip)
+                                      args.sampler, log if args.register else None, views=args.views,
+                                      register=args.register, max_flip=max_flip, attacks=attacks)
     else:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
@@ -552,9 +571,21 @@ def run_eval(args) -> int:
     if args.json:
         print(json.dumps(metrics))
     else:
+        table = metrics.pop("attacks", None)
         for key, value in metrics.items():
             print(f"{key}: {value:.4f}" if isinstance(value, float) else f"{key}: {value}")
+        if table:
+            print(attack_table(table))
     return 0
+
+
+def attack_table(table: dict) -> str:
+    """`evaluate_registered`'s per-attack figures as a Markdown table."""
+    figure = lambda value: "-" if value is None else f"{value:.3f}"  # noqa: E731
+    lines = ["| attack | pictures | detected | exact | bit accuracy | seconds |", "|---|---|---|---|---|---|"]
+    lines += [f"| {name} | {row['pictures']} | {figure(row['detected'])} | {figure(row['exact'])} | "
+              f"{figure(row['bit_acc'])} | {row['seconds']:.2f} |" for name, row in table.items()]
+    return "\n".join(lines)
 
 
 def _train_device(name: str) -> str:

@@ -1,0 +1,117 @@
+"""What happens to a picture on its way to the web, applied to 8-bit pictures as files would carry them.
+
+Each attack is a function of an (H, W, 3) uint8 array and a numpy Generator that returns a new uint8
+array (possibly of another size): lossy formats through Pillow's own encoders with their defaults
+(JPEG with 4:2:0 chroma subsampling, as cameras, browsers and image hosts save), resizing as thumbnails
+and re-uploads do, crops, a screenshot of a viewer window, and photometric edits. `ATTACKS` names the
+suite `meshseal eval --attacks` runs; `apply` runs one by name.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable
+
+import numpy as np
+from PIL import Image
+
+
+def _encode(picture: np.ndarray, format_: str, **options) -> np.ndarray:
+    buffer = io.BytesIO()
+    Image.fromarray(picture).save(buffer, format=format_, **options)
+    buffer.seek(0)
+    with Image.open(buffer) as decoded:
+        return np.asarray(decoded.convert("RGB")).copy()
+
+
+def jpeg(quality: int) -> Callable:
+    """Saved as JPEG at `quality` (Pillow's defaults: 4:2:0 chroma subsampling) and read back."""
+    return lambda picture, rng: _encode(picture, "JPEG", quality=quality)
+
+
+def webp(quality: int) -> Callable:
+    """Saved as lossy WebP at `quality` and read back."""
+    return lambda picture, rng: _encode(picture, "WEBP", quality=quality)
+
+
+def resize(factor: float) -> Callable:
+    """Resized by `factor` (bicubic, as most image tools)."""
+    def attack(picture, rng):
+        height, width = picture.shape[:2]
+        size = (max(8, round(width * factor)), max(8, round(height * factor)))
+        return np.asarray(Image.fromarray(picture).resize(size, Image.Resampling.BICUBIC))
+    return attack
+
+
+def central_crop(keep: float) -> Callable:
+    """The central `keep` of each side."""
+    def attack(picture, rng):
+        height, width = picture.shape[:2]
+        h, w = max(8, round(height * keep)), max(8, round(width * keep))
+        top, left = (height - h) // 2, (width - w) // 2
+        return picture[top:top + h, left:left + w].copy()
+    return attack
+
+
+def screenshot(width: int = 400, height: int = 320, bar: int = 24) -> Callable:
+    """The picture pasted at a random place of a `width` x `height` light-grey window with a darker
+    `bar`-pixel title bar on top: a screenshot of a viewer (a picture larger than the window is shrunk
+    to fit first)."""
+    def attack(picture, rng):
+        canvas = np.full((height, width, 3), 236, dtype=np.uint8)
+        canvas[:bar] = 60
+        image = Image.fromarray(picture)
+        room = (width, height - bar)
+        if image.width > room[0] or image.height > room[1]:
+            scale = min(room[0] / image.width, room[1] / image.height)
+            image = image.resize((max(8, int(image.width * scale)), max(8, int(image.height * scale))),
+                                 Image.Resampling.BICUBIC)
+        top = bar + int(rng.integers(0, room[1] - image.height + 1))
+        left = int(rng.integers(0, room[0] - image.width + 1))
+        canvas[top:top + image.height, left:left + image.width] = np.asarray(image)
+        return canvas
+    return attack
+
+
+def brightness_gamma(gain: float = 1.2, gamma: float = 0.9) -> Callable:
+    """Brighter by `gain`, then a gamma curve (a photo editor's quick fix)."""
+    def attack(picture, rng):
+        x = np.clip(picture.astype(np.float64) / 255.0 * gain, 0.0, 1.0) ** gamma
+        return np.round(x * 255.0).astype(np.uint8)
+    return attack
+
+
+def gaussian_noise(sigma: float = 2.0) -> Callable:
+    """Additive Gaussian noise of `sigma` (in 8-bit levels)."""
+    def attack(picture, rng):
+        noisy = picture.astype(np.float64) + rng.normal(0.0, sigma, picture.shape)
+        return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+    return attack
+
+
+ATTACKS: dict[str, Callable] = {
+    "none": lambda picture, rng: picture.copy(),
+    "jpeg95": jpeg(95), "jpeg90": jpeg(90), "jpeg75": jpeg(75), "jpeg50": jpeg(50),
+    "webp80": webp(80),
+    "resize0.5": resize(0.5), "resize0.75": resize(0.75), "resize1.5": resize(1.5),
+    "crop0.8": central_crop(0.8),
+    "screenshot": screenshot(),
+    "brightness": brightness_gamma(),
+    "noise2": gaussian_noise(2.0),
+}
+GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot"}  # the camera of the picture changes
+
+
+def parse(text: str) -> list[str]:
+    """'jpeg90,webp80' or 'all' -> attack names; an unknown name is a ValueError naming the known ones."""
+    names = list(ATTACKS) if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
+    unknown = [name for name in names if name not in ATTACKS]
+    if unknown or not names:
+        raise ValueError(f"unknown attack(s) {', '.join(unknown) or '(none given)'}: one or more of "
+                         f"{', '.join(ATTACKS)} (comma-separated), or all")
+    return names
+
+
+def apply(name: str, picture: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Attack `name` on an (H, W, 3) uint8 picture -> a uint8 picture."""
+    return ATTACKS[name](np.ascontiguousarray(picture, dtype=np.uint8), rng)

@@ -1,0 +1,54 @@
+"""The picture attacks of `meshseal eval --attacks` (meshseal.attacks): what each does to a picture."""
+
+import numpy as np
+import pytest
+
+from meshseal import attacks
+
+
+@pytest.fixture
+def picture():
+    rng = np.random.default_rng(0)
+    smooth = np.cumsum(np.cumsum(rng.normal(size=(96, 128, 3)), 0), 1)
+    smooth = (smooth - smooth.min()) / (smooth.max() - smooth.min())
+    return np.round(smooth * 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("name", list(attacks.ATTACKS))
+def test_every_attack_returns_an_8_bit_picture_and_repeats_with_its_seed(name, picture):
+    first = attacks.apply(name, picture, np.random.default_rng(1))
+    again = attacks.apply(name, picture, np.random.default_rng(1))
+    assert first.dtype == np.uint8 and first.ndim == 3 and first.shape[2] == 3
+    assert np.array_equal(first, again)
+    assert picture.sum() == attacks.apply("none", picture, np.random.default_rng(0)).sum()  # input untouched
+
+
+def test_geometry_of_the_geometric_attacks(picture):
+    rng = np.random.default_rng(2)
+    assert attacks.apply("resize0.5", picture, rng).shape == (48, 64, 3)
+    assert attacks.apply("resize1.5", picture, rng).shape == (144, 192, 3)
+    crop = attacks.apply("crop0.8", picture, rng)
+    assert crop.shape == (77, 102, 3) and np.array_equal(crop, picture[9:86, 13:115])
+    shot = attacks.apply("screenshot", picture, rng)
+    assert shot.shape == (320, 400, 3) and (shot[:24] == 60).all()
+    found = [(top, left) for top in range(24, 320 - 96 + 1) for left in range(0, 400 - 128 + 1)
+             if np.array_equal(shot[top:top + 96, left:left + 128], picture)]
+    assert len(found) == 1  # the picture, unscaled, somewhere below the bar
+
+
+def test_lossy_formats_change_the_picture_a_little_and_brightness_a_lot(picture):
+    rng = np.random.default_rng(3)
+    for name, most in (("jpeg95", 6.0), ("jpeg50", 10.0), ("webp80", 10.0)):
+        out = attacks.apply(name, picture, rng).astype(float)
+        error = np.abs(out - picture).mean()
+        assert 0 < error < most, (name, error)
+    assert np.abs(attacks.apply("brightness", picture, rng).astype(float).mean() - picture.mean()) > 5
+
+
+def test_names_parse_and_unknown_ones_are_refused():
+    assert attacks.parse("jpeg90, webp80") == ["jpeg90", "webp80"]
+    assert attacks.parse("all") == list(attacks.ATTACKS)
+    with pytest.raises(ValueError, match="unknown attack"):
+        attacks.parse("jpeg90,bogus")
+    with pytest.raises(ValueError):
+        attacks.parse(" , ")
