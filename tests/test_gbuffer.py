@@ -70,3 +70,35 @@ def test_gbuffers_save_and_load_round_trip(tmp_path):
     assert meta == {"views": 1}
     assert torch.equal(loaded.mask, buffers.mask) and torch.equal(loaded.item, buffers.item)
     assert torch.equal(loaded.uv, buffers.uv) and torch.equal(loaded.shade, buffers.shade)
+
+
+def test_a_vertex_mark_reshades_baked_views_as_the_renderer_does():
+    """Normals and uvs changed after baking (what a vertex encoder does): the stored faces, barycentrics
+    and surface points give the hard render of the changed mesh, and gradients reach them."""
+    from meshseal.training.gbuffer import composite_surface
+
+    generator = torch.Generator().manual_seed(4)
+    batch = _spheres(3)
+    cameras, lights = sample_views(3, "seed", generator)
+    buffers = bake_views(batch, cameras, lights, 80, framed=True, surface=True)
+    texture = torch.rand(3, 3, 32, 32, generator=generator)
+    normals = batch["normals"] + 0.3 * torch.randn(batch["normals"].shape, generator=generator)
+    uvs = batch["uvs"] + 0.05 * torch.randn(batch["uvs"].shape, generator=generator)
+    background = torch.rand(3, 3, generator=generator)
+    normals.requires_grad_(True)
+    uvs.requires_grad_(True)
+    picture = composite_surface(texture, normals, uvs, batch["faces"], buffers, background)
+    # the same framed view through the renderer: the framed clip coordinates, rasterized afresh
+    from meshseal.render import interpolate, rasterize, scatter_to_image
+    from meshseal.render.renderer import MeshBatch as Batch
+    from meshseal.training.gbuffer import frame_clip
+
+    clip = frame_clip(cameras.world_to_clip(batch["positions"], 1.0), torch.ones(3, batch["positions"].shape[1], dtype=torch.bool))
+    fragments = rasterize(clip, batch["faces"], 80, 80)
+    mesh = Batch.from_tensors(batch["positions"], normals.detach(), uvs.detach(), batch["faces"], texture)
+    lit = MeshRenderer(blend="hard").shade(mesh, cameras, lights, fragments)
+    alpha = (fragments.pix_to_face >= 0).unsqueeze(-1)
+    expected = (scatter_to_image(lit, fragments, 0.0) + ~alpha * background[:, None, None, :]).permute(0, 3, 1, 2)
+    assert (picture.detach() - expected).abs().max() < 1e-4
+    picture.sum().backward()
+    assert normals.grad.abs().sum() > 0 and uvs.grad.abs().sum() > 0

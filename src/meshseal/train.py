@@ -259,14 +259,15 @@ class Trainer:
 
     # -------------------------------------------------------- cached G-buffers
     def _uses_gbuffers(self) -> bool:
-        """Texture-only blind models with a learned encoder train on cached G-buffers unless told not to."""
+        """Blind models with learned encoders (texture, vertex or both: positions never move) train on
+        cached G-buffers unless told not to."""
         mode, model = self.config.train.gbuffer, self.model
         if mode not in ("auto", "on", "off"):
             raise MeshsealError(f"gbuffer: '{mode}' is not one of auto | on | off")
-        applies = (model.vertex_encoder is None and model.texture_encoder is not None and not model.informed
-                   and model.decoder is not None)
+        applies = (model.texture_encoder is not None or model.vertex_encoder is not None) and not model.informed \
+            and model.decoder is not None
         if mode == "on" and not applies:
-            raise MeshsealError("gbuffer: on needs a texture-only model with a learned encoder and a blind decoder")
+            raise MeshsealError("gbuffer: on needs learned encoders and a blind decoder")
         return mode != "off" and applies
 
     def _check_distributed(self) -> None:
@@ -276,38 +277,47 @@ class Trainer:
 
         cfg, world = self.config.train, self.world
         if self.views is None or cfg.pretrain_steps > 0:
-            raise MeshsealError("training in several processes needs the G-buffer path (a texture-only blind model) "
-                                "and pretrain_steps 0")
+            raise MeshsealError("training in several processes needs the G-buffer path (learned encoders, a blind "
+                                "decoder) and pretrain_steps 0")
         if cfg.batch_size % world.size:
             raise MeshsealError(f"batch_size {cfg.batch_size} does not split evenly over {world.size} processes")
         global_batch_norm(self.model)
 
     def _view_banks(self) -> dict:
         """The train and test views, baked once into `<data>/gbuffers/` and kept on the training device,
-        with the items' textures (uint8) beside them."""
+        with the items' textures (uint8) beside them and, for a vertex mark, their geometry. A vertex
+        mark's views are baked without the 3D rotation (a rotation would turn the marked normals too)."""
         from .training.gbuffer import bake_key, cached_bake
 
         cfg = self.config.train
         folder = Path(self.config.data) / "gbuffers"
         size = self.model.config.frame_size
-        distort = Distortions3D(cfg.distortion_3d) if cfg.distortion_3d > 0 else None
+        surface = self.model.vertex_encoder is not None
+        distort = Distortions3D(cfg.distortion_3d, p_rotation=0.0 if surface else 0.25) if cfg.distortion_3d > 0 else None
         train = cached_bake(self.train_set.dataset, folder / bake_key("train", cfg.texture_kinds, cfg.gbuffer_views, size,
-                                                                     cfg.sampler, self.config.seed, cfg.distortion_3d),
-                            cfg.gbuffer_views, size, cfg.sampler, self.config.seed, distort, self.log)
+                                                                     cfg.sampler, self.config.seed, cfg.distortion_3d,
+                                                                     surface),
+                            cfg.gbuffer_views, size, cfg.sampler, self.config.seed, distort, self.log, surface)
         if self.world.distributed and not self.world.main:
             torch.distributed.barrier()  # the main process bakes; the others read its files
         val_views = min(len(self.val_set), cfg.val_meshes)
         val_set = torch.utils.data.Subset(self.val_set, range(val_views))
         val_set.rows = self.val_set.rows[:val_views]
         test = cached_bake(val_set, folder / bake_key("test", cfg.texture_kinds, 1, size, cfg.sampler,
-                                                      self.config.seed + 1_000_003, 0.0),
-                           1, size, cfg.sampler, self.config.seed + 1_000_003, None, self.log)
+                                                      self.config.seed + 1_000_003, 0.0, surface),
+                           1, size, cfg.sampler, self.config.seed + 1_000_003, None, self.log, surface)
         if self.world.distributed and self.world.main:
             torch.distributed.barrier()
         as_bytes = lambda dataset, count: torch.stack([self._texture_bytes(dataset, i) for i in range(count)])  # noqa: E731
-        return {"train": train.to(self.device), "test": test.to(self.device),
+        bank = {"train": train.to(self.device), "test": test.to(self.device),
                 "train_textures": as_bytes(self.train_set, len(self.train_set)).to(self.device),
                 "test_textures": as_bytes(self.val_set, val_views).to(self.device), "textures_epoch": 0}
+        if surface:
+            from .training.gbuffer import _geometry
+
+            for split, dataset, count in (("train", self.train_set, len(self.train_set)), ("test", self.val_set, val_views)):
+                bank[f"{split}_geometry"] = collate([_geometry(dataset, i) for i in range(count)], self.device)
+        return bank
 
     @staticmethod
     def _texture_bytes(dataset, index: int) -> torch.Tensor:
@@ -336,20 +346,36 @@ class Trainer:
         enabled = self.config.train.amp and self.device.type == "cuda"
         return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=enabled)
 
-    def _gbuffer_pass(self, views, textures, message, background, attack=None):
-        """Marked and original pictures of the baked `views` and the decoder's logits."""
-        from .training.gbuffer import composite
+    def _gbuffer_pass(self, views, split: str, message, background, attack=None) -> dict:
+        """Marked and original pictures of the baked `views` of `split`'s items, the decoder's logits,
+        and what the encoders changed (texture; normals and uvs with the vertex mask, for a vertex mark)."""
+        from .data.dataset import vertex_mask
+        from .training.gbuffer import composite, composite_surface
 
-        texture = textures.float() / 255.0
-        with self._autocast():
-            marked = self.model.texture_encoder(texture, message).float()
-        picture = composite(marked, views, background)
+        bank = self.views
+        texture = bank[f"{split}_textures"][views.item].float() / 255.0
+        out = {"texture": texture}
+        if views.surface is None:
+            with self._autocast():
+                out["marked"] = self.model.texture_encoder(texture, message).float()
+            picture = composite(out["marked"], views, background)
+        else:
+            geometry = {key: value[views.item] for key, value in bank[f"{split}_geometry"].items()}
+            mask = vertex_mask(geometry)
+            with self._autocast():
+                marked = self.model.embed(geometry["positions"], geometry["normals"], geometry["uvs"], texture, message,
+                                          mask)
+            normals, uvs, out["marked"] = (value.float() for value in marked)
+            picture = composite_surface(out["marked"], normals, uvs, geometry["faces"], views, background)
+            out |= {"normals": geometry["normals"], "normals_marked": normals, "uvs": geometry["uvs"],
+                    "uvs_marked": uvs, "vertex_mask": mask}
         with torch.no_grad():
-            original = composite(texture, views, background)
+            out["original"] = composite(texture, views, background)
         seen = picture if attack is None else attack(picture, self.generator)
         with self._autocast():
-            logits = self.model.decode(seen).float()
-        return texture, marked, original, picture, logits
+            out["logits"] = self.model.decode(seen).float()
+        out["picture"] = picture
+        return out
 
     def _gbuffer_step(self, index, message, distorting: bool):
         cfg, weights, bank = self.config.train, self.config.loss, self.views
@@ -359,15 +385,20 @@ class Trainer:
         attack = Distortions2D(cfg.distortion_2d) if distorting and cfg.distortion_2d > 0 else None
         share = self.world.share(n)  # this process's part of the global batch (all of it in one process)
         views, message, background = bank["train"][index[share]], message[share], background[share]
-        texture, marked, original, picture, logits = self._gbuffer_pass(
-            views, bank["train_textures"][views.item], message, background, attack)
+        out = self._gbuffer_pass(views, "train", message, background, attack)
+        texture, marked, original, picture = out["texture"], out["marked"], out["original"], out["picture"]
         texture_term = (marked - texture).abs().mean()
         image_term = (picture - original).abs().mean()
-        loss = (weights.message * message_loss(logits, message) + self.texture_weight * texture_term
+        loss = (weights.message * message_loss(out["logits"], message) + self.texture_weight * texture_term
                 + self.image_weight * image_term)
+        if "vertex_mask" in out:  # the seed's per-component vertex loss, as the rendering pass adds it
+            mask = out["vertex_mask"]
+            loss = loss + self._ramp() * weights.vertex * (
+                weights.normal_weight * masked_l1(out["normals_marked"], out["normals"], mask)
+                + weights.uv_weight * masked_l1(out["uvs_marked"], out["uvs"], mask))
         stats = {"psnr_render": psnr(picture.detach(), original).mean(),
                  "psnr_texture": psnr(marked.detach(), texture).mean(), "stage": 2}
-        return loss, logits, stats, message
+        return loss, out["logits"], stats, message
 
     @torch.no_grad()
     def recalibrate_batch_norm(self, batches: int = 16) -> None:
@@ -389,8 +420,7 @@ class Trainer:
             index = torch.randint(len(bank["train"]), (size,), generator=generator)[share].to(self.device)
             message = torch.randint(0, 2, (size, self.model.n_bits), generator=generator)[share].float().to(self.device)
             views = bank["train"][index]
-            self._gbuffer_pass(views, bank["train_textures"][views.item], message,
-                               torch.zeros(len(index), 3, device=self.device))
+            self._gbuffer_pass(views, "train", message, torch.zeros(len(index), 3, device=self.device))
         for norm in norms:
             norm.momentum = norm.momentum_kept
             del norm.momentum_kept
@@ -407,12 +437,11 @@ class Trainer:
             views = bank["test"][start:start + self.config.train.batch_size]
             n = len(views)
             message = torch.randint(0, 2, (n, self.model.n_bits), generator=generator).float().to(self.device)
-            texture, marked, original, picture, logits = self._gbuffer_pass(
-                views, bank["test_textures"][views.item], message, torch.zeros(n, 3, device=self.device))
-            rows["bit_acc"].append(bit_accuracy(logits, message))
-            rows["psnr_render"].append(psnr(picture, original))
-            rows["ssim_render"].append(ssim(picture, original))
-            rows["psnr_texture"].append(psnr(marked, texture))
+            out = self._gbuffer_pass(views, "test", message, torch.zeros(n, 3, device=self.device))
+            rows["bit_acc"].append(bit_accuracy(out["logits"], message))
+            rows["psnr_render"].append(psnr(out["picture"], out["original"]))
+            rows["ssim_render"].append(ssim(out["picture"], out["original"]))
+            rows["psnr_texture"].append(psnr(out["marked"], out["texture"]))
         self.model.train(was_training)
         return {name: float(torch.cat(values).mean()) for name, values in rows.items()}
 

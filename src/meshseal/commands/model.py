@@ -377,7 +377,8 @@ def _describe(result, expect=None) -> str:
 
 
 def run_detect(args) -> int:
-    require_files((args.mesh, "mesh file"), *((path, "picture or folder") for path in args.images))
+    # one picture named: a mistyped name is answered at once; of several, a missing one is that line's error
+    require_files((args.mesh, "mesh file"), *([(args.images[0], "picture or folder")] if len(args.images) == 1 else []))
     stage = Stages()
     stage("loading the model" + (f" and {args.mesh.name}" if args.mesh is not None else ""))
     from ..api import load

@@ -43,6 +43,7 @@ class GBuffers:
     shade: torch.Tensor
     mask: torch.Tensor
     item: torch.Tensor
+    surface: "Surface | None" = None  # what a mark that moves normals or uvs needs (`bake_views(surface=True)`)
 
     def __len__(self) -> int:
         return self.item.shape[0]
@@ -50,19 +51,25 @@ class GBuffers:
     def to(self, device, dtype=None) -> "GBuffers":
         float_type = dtype or self.uv.dtype
         return GBuffers(self.uv.to(device, float_type), self.shade.to(device, float_type), self.mask.to(device),
-                        self.item.to(device))
+                        self.item.to(device), None if self.surface is None else self.surface.to(device, float_type))
 
     def __getitem__(self, index) -> "GBuffers":
-        return GBuffers(self.uv[index], self.shade[index], self.mask[index], self.item[index])
+        return GBuffers(self.uv[index], self.shade[index], self.mask[index], self.item[index],
+                        None if self.surface is None else self.surface[index])
+
 
     def save(self, path, meta: dict) -> None:
         """Compressed .npz (uv and shade as float16), written atomically."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         temp = path.with_name(f".{path.name}.tmp.npz")
+        extra = {} if self.surface is None else {
+            "face": self.surface.face.numpy().astype(np.int32), "bary": self.surface.bary.to(torch.float16).numpy(),
+            "world": self.surface.world.to(torch.float16).numpy(), "eye": self.surface.eye.numpy(),
+            "light_position": self.surface.light_position.numpy(), "light_intensity": self.surface.light_intensity.numpy()}
         np.savez_compressed(temp, uv=self.uv.to(torch.float16).numpy(), shade=self.shade.to(torch.float16).numpy(),
                             mask=np.packbits(self.mask.numpy(), axis=-1), item=self.item.numpy().astype(np.int32),
-                            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
+                            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **extra)
         temp.replace(path)
 
     @classmethod
@@ -71,8 +78,37 @@ class GBuffers:
             size = data["uv"].shape[-2]
             mask = np.unpackbits(data["mask"], axis=-1, count=size).astype(bool)
             meta = json.loads(bytes(data["meta"]).decode())
+            surface = None
+            if "face" in data:
+                surface = Surface(*(torch.from_numpy(data[name]) for name in
+                                    ("face", "bary", "world", "eye", "light_position", "light_intensity")))
             return cls(torch.from_numpy(data["uv"]), torch.from_numpy(data["shade"]), torch.from_numpy(mask),
-                       torch.from_numpy(data["item"].astype(np.int64))), meta
+                       torch.from_numpy(data["item"].astype(np.int64)), surface), meta
+
+
+@dataclass
+class Surface:
+    """Per pixel of N baked views: the visible face (N, S, S) (-1 off the object), its perspective-
+    correct barycentrics (N, S, S, 3) and the surface point (N, S, S, 3); per view the eye (N, 3) and the
+    lights (N, L, 3) position and intensity. Positions never move under a vertex mark that changes
+    normals or uvs, so these stay valid while the mark re-shades and re-textures the pixels
+    (`composite_surface`)."""
+
+    face: torch.Tensor
+    bary: torch.Tensor
+    world: torch.Tensor
+    eye: torch.Tensor
+    light_position: torch.Tensor
+    light_intensity: torch.Tensor
+
+    def to(self, device, dtype=None) -> "Surface":
+        cast = lambda t: t.to(device, dtype or t.dtype)  # noqa: E731
+        return Surface(self.face.to(device), cast(self.bary), cast(self.world), cast(self.eye),
+                       cast(self.light_position), cast(self.light_intensity))
+
+    def __getitem__(self, index) -> "Surface":
+        return Surface(*(getattr(self, name)[index] for name in
+                         ("face", "bary", "world", "eye", "light_position", "light_intensity")))
 
 
 def frame_clip(clip: torch.Tensor, valid: torch.Tensor, margin: float = BOX_MARGIN) -> torch.Tensor:
@@ -90,8 +126,9 @@ def frame_clip(clip: torch.Tensor, valid: torch.Tensor, margin: float = BOX_MARG
 
 
 def bake_views(batch: dict, cameras, lights, size: int, framed: bool = True, distortions_3d=None,
-               generator: torch.Generator | None = None) -> GBuffers:
-    """G-buffers of B dataset items (a `collate`d batch), one view each from `cameras` and `lights`."""
+               generator: torch.Generator | None = None, surface: bool = False) -> GBuffers:
+    """G-buffers of B dataset items (a `collate`d batch), one view each from `cameras` and `lights`;
+    with `surface`, also what `composite_surface` needs to re-shade them under changed normals and uvs."""
     positions, normals, faces = batch["positions"], batch["normals"], batch["faces"]
     if distortions_3d is not None:
         positions, normals, faces = distortions_3d(positions, normals, faces, generator)
@@ -108,14 +145,19 @@ def bake_views(batch: dict, cameras, lights, size: int, framed: bool = True, dis
                           by_image(lights.position), by_image(lights.intensity), DEFAULT_AMBIENT * ones, 0 * ones,
                           values.new_full((values.shape[0],), DEFAULT_SHININESS))[:, 0]
     uv = values[:, 6:8] - torch.floor(values[:, 6:8])
+    found = None
+    if surface:
+        found = Surface(fragments.pix_to_face.to(torch.int32), scatter_to_image(fragments.bary, fragments, 0.0),
+                        scatter_to_image(values[:, :3], fragments, 0.0), cameras.eye.clone(),
+                        lights.position.clone(), lights.intensity.clone())
     return GBuffers(scatter_to_image(uv, fragments, 0.0), scatter_to_image(shade[:, None], fragments, 0.0)[..., 0],
-                    fragments.pix_to_face >= 0, torch.zeros(positions.shape[0], dtype=torch.long))
+                    fragments.pix_to_face >= 0, torch.zeros(positions.shape[0], dtype=torch.long), found)
 
 
 def bake(dataset, views: int, size: int, sampler: str = "seed", seed: int = 0, distortions_3d=None,
-         batch_size: int = 16, progress=None) -> GBuffers:
+         batch_size: int = 16, progress=None, surface: bool = False) -> GBuffers:
     """`views` framed views of every item of `dataset` (cameras and lights from `sampler`'s ranges),
-    drawn from `seed` alone."""
+    drawn from `seed` alone; `surface`: with what a vertex mark needs (`Surface`)."""
     from ..pipeline import sample_views
 
     generator = torch.Generator().manual_seed(seed)
@@ -126,12 +168,17 @@ def bake(dataset, views: int, size: int, sampler: str = "seed", seed: int = 0, d
                 index = list(range(start, min(len(dataset), start + batch_size)))
                 batch = collate([_geometry(dataset, i) for i in index])
                 cameras, lights = sample_views(len(index), sampler, generator)
-                part = bake_views(batch, cameras, lights, size, True, distortions_3d, generator)
-                part.item = torch.tensor(index)
-                parts.append(GBuffers(part.uv.half(), part.shade.half(), part.mask, part.item))
+                part = bake_views(batch, cameras, lights, size, True, distortions_3d, generator, surface)
+                if part.surface is not None:
+                    part.surface.bary, part.surface.world = part.surface.bary.half(), part.surface.world.half()
+                parts.append(GBuffers(part.uv.half(), part.shade.half(), part.mask, torch.tensor(index), part.surface))
                 if progress is not None:
                     progress(len(index))
-    return GBuffers(*(torch.cat([getattr(p, name) for p in parts]) for name in ("uv", "shade", "mask", "item")))
+    found = None
+    if surface:
+        found = Surface(*(torch.cat([getattr(p.surface, name) for p in parts]) for name in
+                          ("face", "bary", "world", "eye", "light_position", "light_intensity")))
+    return GBuffers(*(torch.cat([getattr(p, name) for p in parts]) for name in ("uv", "shade", "mask", "item")), found)
 
 
 def _geometry(dataset, index: int) -> dict:
@@ -143,11 +190,11 @@ def _geometry(dataset, index: int) -> dict:
 
 
 def cached_bake(dataset, path, views: int, size: int, sampler: str, seed: int, distortions_3d=None,
-                log=print) -> GBuffers:
+                log=print, surface: bool = False) -> GBuffers:
     """`bake`, kept in `path` (a .npz) and reused while the dataset's items and the settings are the same."""
     ids = [row["id"] for row in dataset.rows]
     meta = {"ids": hashlib.sha256("\n".join(ids).encode()).hexdigest(), "views": views, "size": size,
-            "sampler": sampler, "seed": seed, "margin": BOX_MARGIN,
+            "sampler": sampler, "seed": seed, "margin": BOX_MARGIN, "surface": surface,
             "distortions_3d": None if distortions_3d is None else vars(distortions_3d)}
     path = Path(path)
     if path.is_file():
@@ -158,15 +205,58 @@ def cached_bake(dataset, path, views: int, size: int, sampler: str, seed: int, d
     from tqdm import tqdm
 
     with tqdm(total=views * len(dataset), desc=f"baking {path.name}", unit="view", dynamic_ncols=True) as bar:
-        buffers = bake(dataset, views, size, sampler, seed, distortions_3d, progress=bar.update)
+        buffers = bake(dataset, views, size, sampler, seed, distortions_3d, progress=bar.update, surface=surface)
     buffers.save(path, meta)
     return buffers
 
 
-def bake_key(split: str, kinds, views: int, size: int, sampler: str, seed: int, distortion_3d: float) -> str:
+def bake_key(split: str, kinds, views: int, size: int, sampler: str, seed: int, distortion_3d: float,
+             surface: bool = False) -> str:
     """A file name for one bank of views of a dataset folder."""
-    text = json.dumps([split, sorted(kinds or []), views, size, sampler, seed, distortion_3d])
+    text = json.dumps([split, sorted(kinds or []), views, size, sampler, seed, distortion_3d] + ([True] if surface else []))
     return f"{split}-{hashlib.sha256(text.encode()).hexdigest()[:12]}.npz"
+
+
+def _sample(texture: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Textures (B, C, T, T') at uv (B, S, S, 2): bilinear, REPEAT wrapping, texel centres (as
+    `render.sample_texture` and OpenGL) -> (B, C, S, S)."""
+    height, width = texture.shape[-2:]
+    padded = F.pad(texture, (1, 1, 1, 1), mode="circular")
+    uv = uv.to(texture.dtype)
+    x = (uv[..., 0] * width + 1.0) / (width + 2) * 2.0 - 1.0
+    y = ((1.0 - uv[..., 1]) * height + 1.0) / (height + 2) * 2.0 - 1.0
+    return F.grid_sample(padded, torch.stack([x, y], dim=-1), mode="bilinear", padding_mode="border",
+                         align_corners=False)
+
+
+def composite_surface(texture: torch.Tensor, normals: torch.Tensor, uvs: torch.Tensor, faces: torch.Tensor,
+                      buffers: GBuffers, background: torch.Tensor) -> torch.Tensor:
+    """The pictures (B, 3, S, S) of B meshes whose vertex normals (B, V, 3) and uvs (B, V, 2) a mark may
+    have changed, faces (B, F, 3), in the baked views `buffers` (baked with `surface=True`): the
+    normals and uvs interpolated at each pixel's face and barycentrics, the Phong shade recomputed, the
+    texture (B, 3, T, T) looked up. Equals the hard render of those meshes; differentiable in the
+    texture, normals and uvs."""
+    found = buffers.surface
+    n, size = found.face.shape[0], found.face.shape[-1]
+    corner = torch.gather(faces, 1, found.face.long().clamp_min(0).reshape(n, -1, 1).expand(-1, -1, 3))
+    weights = found.bary.to(normals.dtype).reshape(n, -1, 3, 1)
+
+    def at_pixels(table):  # (B, V, C) -> (B, S * S, C)
+        channels = table.shape[-1]
+        values = torch.gather(table, 1, corner.reshape(n, -1, 1).expand(-1, -1, channels))
+        return (values.reshape(n, -1, 3, channels) * weights).sum(2)
+
+    normal, uv = at_pixels(normals).reshape(-1, 3), at_pixels(uvs)
+    pixels = size * size
+    per_pixel = lambda table: table.repeat_interleave(pixels, dim=0)  # noqa: E731
+    ones = normal.new_ones(normal.shape[0], 3)
+    shade = PhongShader()(found.world.to(normal.dtype).reshape(-1, 3), normal, DEFAULT_DIFFUSE * ones,
+                          per_pixel(found.eye.to(normal.dtype)), per_pixel(found.light_position.to(normal.dtype)),
+                          per_pixel(found.light_intensity.to(normal.dtype)), DEFAULT_AMBIENT * ones, 0 * ones,
+                          normal.new_full((normal.shape[0],), DEFAULT_SHININESS))[:, 0].reshape(n, 1, size, size)
+    uv = (uv - torch.floor(uv.detach())).reshape(n, size, size, 2)
+    colour = (_sample(texture, uv) * shade.to(texture.dtype)).clamp(0.0, 1.0)
+    return torch.where(buffers.mask.unsqueeze(1), colour, background.to(colour)[:, :, None, None])
 
 
 def composite(texture: torch.Tensor, buffers: GBuffers, background: torch.Tensor) -> torch.Tensor:
@@ -174,12 +264,5 @@ def composite(texture: torch.Tensor, buffers: GBuffers, background: torch.Tensor
     `background` (B, 3): the texture sampled bilinearly with REPEAT wrapping at texel centres (as
     `render.sample_texture` and OpenGL), times the shade, clamped to [0, 1]. Differentiable in the
     texture."""
-    height, width = texture.shape[-2:]
-    padded = F.pad(texture, (1, 1, 1, 1), mode="circular")
-    uv = buffers.uv.to(texture.dtype)
-    x = (uv[..., 0] * width + 1.0) / (width + 2) * 2.0 - 1.0
-    y = ((1.0 - uv[..., 1]) * height + 1.0) / (height + 2) * 2.0 - 1.0
-    albedo = F.grid_sample(padded, torch.stack([x, y], dim=-1), mode="bilinear", padding_mode="border",
-                           align_corners=False)
-    colour = (albedo * buffers.shade.to(texture.dtype).unsqueeze(1)).clamp(0.0, 1.0)
+    colour = (_sample(texture, buffers.uv) * buffers.shade.to(texture.dtype).unsqueeze(1)).clamp(0.0, 1.0)
     return torch.where(buffers.mask.unsqueeze(1), colour, background.to(colour)[:, :, None, None])
