@@ -229,6 +229,8 @@ class Trainer:
         if len(self.train_set) == 0:
             raise MeshsealError(f"{config.data}: the train split is empty")
         self.model = WatermarkModel(config.model).to(self.device)
+        if self.device.type == "cuda":
+            torch.backends.cudnn.benchmark = True  # fixed picture sizes: cuDNN may time its convolution algorithms once
         if self.model.informed and config.train.pretrain_steps > 0:
             raise MeshsealError("pretrain_steps must be 0 for an informed (uv) decoder: its input is a UV map, "
                                 "not a picture")
