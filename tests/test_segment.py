@@ -103,3 +103,24 @@ def test_a_cut_that_took_in_a_patch_of_the_background_is_mended_from_its_registr
     assert texture_misfit(bunny, alone.camera, tensor[None], everywhere, PICK_SIGMAS) > ACCEPT_MISFIT
     assert texture_misfit(bunny, again.camera, tensor[None], everywhere, PICK_SIGMAS) < ACCEPT_MISFIT
     assert pose_error(bunny, camera, again.camera, 256, 256) < 0.5
+
+
+def test_a_picture_pasted_into_a_screenshot_is_found_and_a_plain_picture_is_left_alone():
+    """`framing.inner_picture`: a render pasted into a light window with a dark title bar is found as
+    the rectangle it fills; a picture of an object on a plain background, and a plain rectangle object,
+    are not pictures within pictures."""
+    from meshseal.attacks import apply
+    from meshseal.framing import inner_picture
+
+    ys, xs = np.mgrid[0:120, 0:160]
+    render = np.zeros((120, 160, 3), dtype=np.float32) + np.float32([0.35, 0.3, 0.25])
+    disk = (ys - 60) ** 2 + (xs - 85) ** 2 < 40 ** 2
+    render[disk] = np.stack([0.8 + 0.1 * np.sin(xs[disk] / 3), 0.4 + 0.0 * xs[disk], 0.2 + 0.1 * np.cos(ys[disk] / 4)], -1)
+    shot = apply("screenshot", np.round(render * 255).astype(np.uint8), np.random.default_rng(0)).astype(np.float32) / 255
+    top, bottom, left, right = inner_picture(shot)
+    assert (bottom - top, right - left) == (120, 160)
+    assert np.abs(shot[top:bottom, left:right] - render).max() < 1 / 255 + 1e-6
+    assert inner_picture(render) is None
+    box = np.full((120, 160, 3), 0.9, dtype=np.float32)
+    box[20:100, 30:130] = 0.3  # a plain rectangle on a plain background: nothing inside it
+    assert inner_picture(box) is None

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .errors import MeshsealError
-from .framing import box_from_points, boxes_from_mask, crop_boxes, object_mask
+from .framing import box_from_points, boxes_from_mask, crop_boxes, inner_picture, object_mask
 from .mesh import Mesh, normalize, to_z_up
 from .metrics import BUDGET_VIEWS, MAX_FLIP
 from .models import WatermarkModel
@@ -633,6 +633,10 @@ class Watermarker:
             pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
             mask, background = alpha, np.zeros(3, dtype=np.float32)
         else:  # the silhouette's edge matters only to registration
+            inner = None if (given or from_metadata) else inner_picture(pixels)
+            if inner is not None:  # a picture within a picture (a screenshot): read the inner one, in its own frame
+                top, bottom, left, right = inner
+                pixels = np.ascontiguousarray(pixels[top:bottom, left:right])
             mask, background = object_mask(pixels, trim=not (given or from_metadata))
         if int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
             what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"

@@ -129,6 +129,38 @@ def object_mask(image: np.ndarray, threshold: float = 0.03, trim: bool = True) -
     return (half_covered(image - plane, mask) if trim else mask), background
 
 
+def inner_picture(image: np.ndarray, threshold: float = 0.03, fill: float = 0.97) -> tuple[int, int, int, int] | None:
+    """Where a picture holds another picture (a render pasted into a screenshot of a viewer window, a
+    page, a collage): the inner picture's rows and columns (top, bottom, left, right), or None.
+
+    The plain-background object of `image` (H, W, 3) is then a filled axis-aligned rectangle (at least
+    `fill` of its box, smaller than the picture, at least 32 px a side) whose own border is one plain
+    colour (nine tenths of it within `threshold` of its median) with an object inside. Reading the
+    inner picture alone gives registration the frame the picture was made in, and the object its own
+    background."""
+    from scipy import ndimage
+
+    mask, _ = object_mask(image, threshold, trim=False)
+    labels, count = ndimage.label(mask)
+    if count == 0:
+        return None
+    sizes = ndimage.sum(mask, labels, index=np.arange(1, count + 1))
+    rows, cols = ndimage.find_objects(labels)[int(np.argmax(sizes))]
+    top, bottom, left, right = rows.start, rows.stop, cols.start, cols.stop
+    height, width = image.shape[:2]
+    if (bottom - top < 32 or right - left < 32 or (bottom - top >= height - 2 and right - left >= width - 2)
+            or sizes.max() < fill * (bottom - top) * (right - left)):
+        return None
+    inner = image[top:bottom, left:right]
+    edge = border_pixels(inner)
+    if np.mean(np.abs(edge - np.median(edge, axis=0)).max(-1) <= threshold) < 0.9:
+        return None
+    found, _ = object_mask(inner, threshold, trim=False)
+    if found.sum() < 16 or found.mean() > 0.9:
+        return None
+    return top, bottom, left, right
+
+
 def half_covered(difference: np.ndarray, mask: np.ndarray, sigma: float = 1.5, min_contrast: float = 0.1) -> np.ndarray:
     """`mask` (H, W) of the pixels that differ from the background, trimmed on its one-pixel rim to
     those the object covers at least half. `difference` (H, W, 3): the picture minus its background.
