@@ -24,9 +24,11 @@ def _encode(picture: np.ndarray, format_: str, **options) -> np.ndarray:
         return np.asarray(decoded.convert("RGB")).copy()
 
 
-def jpeg(quality: int) -> Callable:
-    """Saved as JPEG at `quality` (Pillow's defaults: 4:2:0 chroma subsampling) and read back."""
-    return lambda picture, rng: _encode(picture, "JPEG", quality=quality)
+def jpeg(quality: int, full_chroma: bool = False) -> Callable:
+    """Saved as JPEG at `quality` (Pillow's defaults: 4:2:0 chroma subsampling; `full_chroma`: 4:4:4, as
+    some tools save at high quality) and read back."""
+    options = {"subsampling": 0} if full_chroma else {}
+    return lambda picture, rng: _encode(picture, "JPEG", quality=quality, **options)
 
 
 def webp(quality: int) -> Callable:
@@ -92,6 +94,7 @@ def gaussian_noise(sigma: float = 2.0) -> Callable:
 ATTACKS: dict[str, Callable] = {
     "none": lambda picture, rng: picture.copy(),
     "jpeg95": jpeg(95), "jpeg90": jpeg(90), "jpeg75": jpeg(75), "jpeg50": jpeg(50),
+    "jpeg95_444": jpeg(95, full_chroma=True), "jpeg90_444": jpeg(90, full_chroma=True),
     "webp80": webp(80),
     "resize0.5": resize(0.5), "resize0.75": resize(0.75), "resize1.5": resize(1.5),
     "crop0.8": central_crop(0.8),

@@ -105,7 +105,8 @@ def register(subparsers) -> None:
                                "`meshseal embed` does (default 0.03; 0: strength 1 throughout)")
     evaluate.add_argument("--attacks", default=None, metavar="LIST",
                           help="informed models: also read every picture after each of these attacks, comma-"
-                               "separated, or 'all' (none, jpeg95, jpeg90, jpeg75, jpeg50, webp80, resize0.5, "
+                               "separated, or 'all' (none, jpeg95, jpeg90, jpeg75, jpeg50, jpeg95_444, jpeg90_444 "
+                               "(no chroma subsampling), webp80, resize0.5, "
                                "resize0.75, resize1.5, crop0.8, screenshot, brightness, noise2); the resizes, the crop "
                                "and the screenshot need --register. Prints one row an attack")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
