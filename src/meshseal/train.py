@@ -304,7 +304,6 @@ class Trainer:
             torch.distributed.barrier()  # the main process bakes; the others read its files
         val_views = min(len(self.val_set), cfg.val_meshes)
         val_set = torch.utils.data.Subset(self.val_set, range(val_views))
-        val_set.rows = self.val_set.rows[:val_views]
         test = cached_bake(val_set, folder / bake_key("test", cfg.texture_kinds, 1, size, cfg.sampler,
                                                       self.config.seed + 1_000_003, 0.0, surface),
                            1, size, cfg.sampler, self.config.seed + 1_000_003, None, self.log, surface)
@@ -413,9 +412,10 @@ class Trainer:
             return
         bank, was_training = self.views, self.model.training
         generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + self.step)
+        momenta = [norm.momentum for norm in norms]
         for norm in norms:
             norm.reset_running_stats()
-            norm.momentum_kept, norm.momentum = norm.momentum, None
+            norm.momentum = None  # a cumulative average over the batches below
         self.model.train()
         size, share = self.config.train.batch_size, self.world.share(self.config.train.batch_size)
         for _ in range(batches):  # global batches, each process its share (batch norm sees the global batch)
@@ -423,9 +423,8 @@ class Trainer:
             message = torch.randint(0, 2, (size, self.model.n_bits), generator=generator)[share].float().to(self.device)
             views = bank["train"][index]
             self._gbuffer_pass(views, "train", message, torch.zeros(len(index), 3, device=self.device))
-        for norm in norms:
-            norm.momentum = norm.momentum_kept
-            del norm.momentum_kept
+        for norm, momentum in zip(norms, momenta):
+            norm.momentum = momentum
         self.model.train(was_training)
 
     @torch.no_grad()

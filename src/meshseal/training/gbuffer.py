@@ -191,8 +191,12 @@ def _geometry(dataset, index: int) -> dict:
 
 def cached_bake(dataset, path, views: int, size: int, sampler: str, seed: int, distortions_3d=None,
                 log=print, surface: bool = False) -> GBuffers:
-    """`bake`, kept in `path` (a .npz) and reused while the dataset's items and the settings are the same."""
-    ids = [row["id"] for row in dataset.rows]
+    """`bake`, kept in `path` (a .npz) and reused while the dataset's items (a `MeshDataset` or a Subset
+    of one) and the settings are the same."""
+    if isinstance(dataset, torch.utils.data.Subset):
+        ids = [dataset.dataset.rows[i]["id"] for i in dataset.indices]
+    else:
+        ids = [row["id"] for row in dataset.rows]
     meta = {"ids": hashlib.sha256("\n".join(ids).encode()).hexdigest(), "views": views, "size": size,
             "sampler": sampler, "seed": seed, "margin": BOX_MARGIN, "surface": surface,
             "distortions_3d": None if distortions_3d is None else vars(distortions_3d)}
