@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from meshseal.data import MeshDataset, build, dataset_stats
 from meshseal.data import sources as S
@@ -354,6 +355,33 @@ def test_read_sgi_rle():
     assert image.shape == (2, 2, 3)
     assert image[1, :, 0].tolist() == [10, 10] and image[0, :, 0].tolist() == [20, 30]  # bottom-up rows
 
+
+
+def test_read_image_checks_are_the_mesh_readers(tmp_path):
+    """Image decoding goes through mesh.validate.read_image: a non-file or non-image is a one-line MeshError."""
+    from meshseal.errors import MeshError
+
+    with pytest.raises(MeshError, match="is a directory"):
+        read_image(tmp_path)
+    with pytest.raises(MeshError, match="not a readable image"):
+        read_image(b"not an image", "x.png")
+    rgba = np.zeros((4, 4, 4), np.uint8)  # fully transparent black
+    buffer = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(buffer, format="PNG")
+    assert (read_image(buffer.getvalue()) == 255).all()  # composited on white
+    assert (read_image(buffer.getvalue(), alpha="drop") == 0).all()
+
+
+def test_double_sided_sheet_gets_its_normal():
+    """A sheet whose every triangle is twinned with the opposite winding still gets its plane's normal."""
+    from meshseal.data.formats import RawMaterial, RawMesh
+
+    positions = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], float)  # the y = 0 plane
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    raw = RawMesh(positions, np.concatenate([faces, faces[:, ::-1]]), None, np.zeros(4, np.int64), [RawMaterial()], "z")
+    item = process_mesh(raw, ProcessOptions(n_faces=64, max_verts=64, texture_size=8), np.random.default_rng(0))
+    normals = item.normals[:item.n_verts]
+    assert np.allclose(np.abs(normals[:, 1]), 1.0, atol=1e-6)
 
 def test_off_reader_header_variants(tmp_path):
     (tmp_path / "a.off").write_text("OFF\n# comment\n4 2 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n3 0 1 2 255 0 0\n")

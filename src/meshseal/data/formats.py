@@ -31,7 +31,16 @@ class RawMaterial:
 
 @dataclass
 class RawMesh:
-    """All parts concatenated: per-vertex positions/uvs, faces, per-face material index."""
+    """An asset as the builder reads it: all parts concatenated, per-vertex positions/uvs, faces and a
+    per-face material index.
+
+    Not a `mesh.Mesh`, on purpose: the builder works in numpy float64 in its worker processes and derives
+    normals only after welding and simplifying, so a RawMesh carries none; textures stay uint8 at file
+    resolution (a Mesh holds float tensors, four times the bytes, and multi-material assets carry many
+    large ones); a material needs only its texture and diffuse colour, to pack the atlas; and the OFF,
+    AC3D and PMD readers build it without torch. The geometry applied to it (normals, spherical UVs,
+    simplification, the Z-up rotation) is `meshseal.mesh`'s, see `data.process`.
+    """
 
     positions: np.ndarray  # (V, 3) float64
     faces: np.ndarray  # (F, 3) int64
@@ -95,25 +104,31 @@ def _read_sgi(data: bytes) -> np.ndarray:
 def read_image(source, name: str = "", alpha: str = "composite") -> np.ndarray:
     """Decode an image (path or bytes) to (H, W, 3) uint8, row 0 at the top.
 
-    alpha="composite" puts transparent pixels on white; "drop" ignores the alpha channel (game
-    textures often keep masks, not transparency, there).
+    Decoding and its checks (regular files only, PIL's decompression-bomb limit, a one-line MeshError
+    naming the image) are `mesh.validate.read_image`'s; this adds what the builder needs on top: SGI
+    images in the modes Pillow rejects, and the alpha policy. alpha="composite" puts transparent pixels
+    on white; "drop" ignores the alpha channel (game textures often keep masks, not transparency, there).
     """
-    data = Path(source).read_bytes() if not isinstance(source, (bytes, bytearray)) else bytes(source)
-    name = name or (str(source) if not isinstance(source, (bytes, bytearray)) else "")
+    from ..mesh.validate import read_image as decode, read_regular
+
+    from_bytes = isinstance(source, (bytes, bytearray))
+    name = name or ("" if from_bytes else str(source))
+    data = bytes(source) if from_bytes else read_regular(Path(source), "image file")
     try:
-        with Image.open(io.BytesIO(data)) as image:
-            image.load()
-            if alpha == "composite" and image.mode in ("RGBA", "LA", "PA") or (image.mode == "P" and "transparency" in image.info):
-                image = image.convert("RGBA")
-                background = Image.new("RGBA", image.size, (255, 255, 255, 255))
-                image = Image.alpha_composite(background, image)
-            return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
-    except Exception as error:
-        if data[:2] == b"\x01\xda":
-            try:
-                return _read_sgi(data)
-            except Exception as sgi_error:
-                raise MeshError(f"{name}: cannot read image: {sgi_error}") from None
+        image = decode(data, name)
+    except MeshError:
+        if data[:2] != b"\x01\xda":
+            raise
+        try:
+            return _read_sgi(data)
+        except Exception as sgi_error:
+            raise MeshError(f"{name}: cannot read image: {sgi_error}") from None
+    try:
+        if alpha == "composite" and image.mode in ("RGBA", "LA", "PA") or (
+                image.mode == "P" and "transparency" in image.info):
+            image = Image.alpha_composite(Image.new("RGBA", image.size, (255, 255, 255, 255)), image.convert("RGBA"))
+        return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
+    except Exception as error:  # a mode PIL decodes but cannot convert
         raise MeshError(f"{name}: cannot read image: {str(error).splitlines()[0][:120]}") from None
 
 

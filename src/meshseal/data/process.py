@@ -5,6 +5,9 @@ meshes) -> per-corner UVs carried over from the original surface -> weld by (pos
 vertex normals -> pad to (Vmax, Fmax). Multi-material meshes get one texture: the materials are packed
 into an N x N atlas (textured materials as cells, flat-colour materials as swatches of a palette cell).
 A mesh without its own texture gets spherical UVs and a real or Gaussian-smoothed noise texture.
+
+The geometry steps shared with the rest of the package (vertex normals, spherical UVs, quadric
+decimation, the Y-up to Z-up rotation) are `meshseal.mesh`'s, applied to numpy arrays here.
 """
 
 from __future__ import annotations
@@ -13,14 +16,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 
 from ..errors import MeshError
-from .formats import RawMesh
+from ..mesh.preprocess import Y_UP_TO_Z_UP, decimate, spherical_uv, vertex_normals
+from .formats import RawMesh, read_image
 
-Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+Y_TO_Z = np.array(Y_UP_TO_Z_UP)
 MAX_CELLS = 16
 
 
@@ -91,14 +96,8 @@ def _weld(positions: np.ndarray, faces: np.ndarray, tol: float = 1e-6):
 
 
 def _vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    corners = positions[faces]
-    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = np.zeros_like(positions)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_normals)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    out = np.where(length > 1e-12, normals / np.maximum(length, 1e-12), np.array([0.0, 0.0, 1.0]))
-    return out
+    """`mesh.vertex_normals` on numpy arrays (float64 in and out)."""
+    return vertex_normals(torch.from_numpy(positions), torch.from_numpy(faces.astype(np.int64, copy=False))).numpy()
 
 
 def _subdivide(positions: np.ndarray, faces: np.ndarray):
@@ -114,26 +113,6 @@ def _subdivide(positions: np.ndarray, faces: np.ndarray):
     new_faces = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
                                 np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)])
     return new_positions, new_faces
-
-
-def _simplify(positions: np.ndarray, faces: np.ndarray, target: int):
-    import fast_simplification
-
-    new_positions, new_faces = fast_simplification.simplify(positions, faces.astype(np.int32),
-                                                            target_count=int(target))
-    for _ in range(3):  # the simplifier may stop a little above the target: go again on its result
-        if len(new_faces) <= target or len(new_faces) <= 4:
-            break
-        count = min(int(target * 0.97), len(new_faces) - 1)
-        new_positions, new_faces = fast_simplification.simplify(np.asarray(new_positions), np.asarray(
-            new_faces, dtype=np.int32), target_count=count)
-    new_faces = np.asarray(new_faces, dtype=np.int64)
-    if len(new_faces) == 0:
-        raise MeshError("simplification removed every face")
-    used = np.unique(new_faces)
-    remap = np.full(len(new_positions), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    return np.asarray(new_positions, dtype=np.float64)[used], remap[new_faces]
 
 
 def _cluster(positions: np.ndarray, faces: np.ndarray, max_verts: int):
@@ -310,7 +289,7 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
         welded, welded_faces = _subdivide(welded, welded_faces)
     new_positions, new_faces = welded, welded_faces
     if len(new_faces) > target:
-        new_positions, new_faces = _simplify(welded, welded_faces, target)
+        new_positions, new_faces, _ = decimate(welded, welded_faces, target)
         if len(new_faces) > 1.2 * target or len(new_positions) > options.max_verts:
             # the simplifier stalls on many disconnected parts (foliage): cluster vertices first
             welded, welded_faces = _cluster(welded, welded_faces, int(0.6 * options.max_verts))
@@ -318,7 +297,7 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
                 raise MeshError("mesh collapses when simplified")
             new_positions, new_faces = welded, welded_faces
             if len(new_faces) > target:
-                new_positions, new_faces = _simplify(welded, welded_faces, target)
+                new_positions, new_faces, _ = decimate(welded, welded_faces, target)
 
     for _attempt in range(4):
         if has_texture:
@@ -361,7 +340,7 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
         if target < options.min_faces:
             break
         before = len(new_faces)
-        new_positions, new_faces = _simplify(welded, welded_faces, target)
+        new_positions, new_faces, _ = decimate(welded, welded_faces, target)
         if len(new_faces) > 0.95 * before:
             break  # the simplifier cannot reduce this mesh any further
     if len(out_positions) > options.max_verts or len(out_faces) > options.n_faces:
@@ -369,7 +348,7 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
         welded, welded_faces = _cluster(welded, welded_faces, int(0.6 * options.max_verts))
         new_positions, new_faces = welded, welded_faces
         if len(new_faces) > options.n_faces:
-            new_positions, new_faces = _simplify(welded, welded_faces, int(0.9 * options.n_faces))
+            new_positions, new_faces, _ = decimate(welded, welded_faces, int(0.9 * options.n_faces))
         if len(new_faces) >= options.min_faces:
             has_texture, out_positions, out_faces = False, new_positions, new_faces
             out_normals = _vertex_normals(new_positions, new_faces)
@@ -383,7 +362,7 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
             image = pool[pick]
             source = str(image) if not isinstance(image, np.ndarray) else f"pool[{pick}]"
             if not isinstance(image, np.ndarray):
-                image = np.asarray(Image.open(image).convert("RGB"))
+                image = read_image(image, alpha="drop")
             texture, kind = random_crop(image, rng, texture_size), "real"
         else:
             texture, kind, source = noise_texture(rng, texture_size), "noise", "noise"
@@ -407,9 +386,5 @@ def process_mesh(raw: RawMesh, options: ProcessOptions, rng: np.random.Generator
 
 
 def _spherical_uv(positions: np.ndarray) -> np.ndarray:
-    """The seed's spherical mapping around the origin (positions already centred, Z-up)."""
-    x, y, z = positions.T
-    radius = np.maximum(np.linalg.norm(positions, axis=1), 1e-12)
-    u = 0.5 + np.arctan2(y, x) / (2.0 * math.pi)
-    v = 0.5 + np.arcsin(np.clip(z / radius, -1.0, 1.0)) / math.pi
-    return np.stack([u, v], axis=1)
+    """`mesh.spherical_uv` on numpy arrays (positions already centred, Z-up)."""
+    return spherical_uv(torch.from_numpy(positions)).numpy()

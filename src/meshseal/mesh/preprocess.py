@@ -47,11 +47,14 @@ def normalize(mesh: Mesh) -> Mesh:
     return replace(mesh, positions=(mesh.positions - (low + high) / 2.0) / scale, source=None)
 
 
+Y_UP_TO_Z_UP = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))  # (x, y, z) -> (x, -z, y), a proper rotation
+
+
 def to_z_up(mesh: Mesh) -> Mesh:
     """Rotate a Y-up mesh into the canonical Z-up frame: (x, y, z) -> (x, -z, y)."""
     if mesh.up_axis == "z":
         return mesh
-    rotation = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=mesh.positions.dtype)
+    rotation = torch.tensor(Y_UP_TO_Z_UP, dtype=mesh.positions.dtype)
     return replace(mesh, positions=mesh.positions @ rotation.T, normals=mesh.normals @ rotation.T,
                    up_axis="z", source=None)
 
@@ -65,35 +68,68 @@ def spherical_uv(positions: torch.Tensor) -> torch.Tensor:
     return torch.stack([u, v], dim=-1)
 
 
-def simplify(mesh: Mesh, target_faces: int) -> Mesh:
-    """Quadric-error simplification to about `target_faces` faces (fast-simplification).
+def decimate(points: np.ndarray, triangles: np.ndarray, target: int, track: bool = False):
+    """Quadric-error decimation (fast-simplification) of numpy arrays to at most `target` faces.
 
-    UVs and the material of each face follow the surviving vertices; normals are recomputed.
-    A mesh already at or below the target is returned unchanged.
+    The simplifier may stop a little above the target, so it goes again on its own result (three more
+    tries at most, each aiming slightly lower); a mesh it cannot reduce further stays above. Vertices that
+    no face uses are dropped. `triangles` must hold more than `target` faces.
+
+    Returns positions (V', 3) float64, faces (F', 3) int64 and, with `track`, the output vertex each
+    input vertex collapsed into ((V,) int64, -1 where it ended in no face), else None. Tracking replays
+    the recorded collapses, which yields the same faces; the positions are the simplifier's own.
     """
     import fast_simplification
 
+    def once(positions, faces, count):
+        faces = np.asarray(faces, dtype=np.int32)
+        try:
+            if not track:
+                return (*fast_simplification.simplify(positions, faces, target_count=count), None)
+            new_positions, new_faces, collapses = fast_simplification.simplify(
+                positions, faces, target_count=count, return_collapses=True)
+            _, _, mapping = fast_simplification.replay_simplification(positions, faces.astype(np.int64), collapses)
+        except (ValueError, RuntimeError) as error:
+            raise MeshError(f"simplification failed: {error}") from None
+        return new_positions, new_faces, np.asarray(mapping, dtype=np.int64)
+
+    new_points, new_faces, mapping = once(points, triangles, int(target))
+    for _ in range(3):
+        if len(new_faces) <= target or len(new_faces) <= 4:
+            break
+        count = min(int(target * 0.97), len(new_faces) - 1)
+        new_points, new_faces, again = once(np.asarray(new_points), new_faces, count)
+        mapping = None if mapping is None else again[mapping]
+    new_faces = np.asarray(new_faces, dtype=np.int64)
+    if len(new_faces) == 0:
+        raise MeshError("simplification removed every face")
+    used = np.unique(new_faces)
+    remap = np.full(len(new_points), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return np.asarray(new_points, dtype=np.float64)[used], remap[new_faces], None if mapping is None else remap[mapping]
+
+
+def simplify(mesh: Mesh, target_faces: int) -> Mesh:
+    """`decimate` a Mesh to at most about `target_faces` faces, keeping its attributes.
+
+    UVs and the material of each face follow the surviving vertices (each takes those of one original
+    vertex that collapsed into it); normals are recomputed. A mesh already at or below the target is
+    returned unchanged.
+    """
     if mesh.n_faces <= target_faces:
         return mesh
     points = mesh.positions.detach().cpu().double().numpy()
     triangles = mesh.faces.cpu().numpy().astype(np.int64)
-    reduction = 1.0 - target_faces / mesh.n_faces
-    try:
-        _, _, collapses = fast_simplification.simplify(points, triangles, reduction, return_collapses=True)
-        new_points, new_faces, mapping = fast_simplification.replay_simplification(points, triangles, collapses)
-    except Exception as error:
-        raise MeshError(f"simplification failed: {error}") from None
-    if len(new_faces) == 0:
-        raise MeshError("simplification removed every face")
-    mapping = np.asarray(mapping, dtype=np.int64)
-    # The attributes of a new vertex come from one original vertex that collapsed into it.
+    new_points, new_faces, mapping = decimate(points, triangles, target_faces, track=True)
+    # The attributes of a new vertex come from the first original vertex that collapsed into it.
     representative = np.zeros(len(new_points), dtype=np.int64)
-    representative[mapping[::-1]] = np.arange(len(mapping))[::-1]
+    kept = np.flatnonzero(mapping >= 0)
+    representative[mapping[kept[::-1]]] = kept[::-1]
     vertex_material = np.zeros(len(points), dtype=np.int64)
     vertex_material[triangles.reshape(-1)] = np.repeat(mesh.face_material.cpu().numpy(), 3)
-    faces = torch.from_numpy(np.asarray(new_faces, dtype=np.int64))
-    positions = torch.from_numpy(np.asarray(new_points)).to(mesh.positions.dtype)
+    faces = torch.from_numpy(new_faces)
+    positions = torch.from_numpy(new_points).to(mesh.positions.dtype)
     uvs = None if mesh.uvs is None else mesh.uvs[torch.from_numpy(representative)]
-    face_material = torch.from_numpy(vertex_material[representative][np.asarray(new_faces)[:, 0]])
+    face_material = torch.from_numpy(vertex_material[representative][new_faces[:, 0]])
     return replace(mesh, positions=positions, normals=vertex_normals(positions, faces), faces=faces,
                    uvs=uvs, face_material=face_material, source=None)
