@@ -108,14 +108,15 @@ def read_image(source, name: str = "", alpha: str = "composite") -> np.ndarray:
     naming the image) are `mesh.validate.read_image`'s; this adds what the builder needs on top: SGI
     images in the modes Pillow rejects, and the alpha policy. alpha="composite" puts transparent pixels
     on white; "drop" ignores the alpha channel (game textures often keep masks, not transparency, there).
+    A palette image with a transparent index is put on white under either policy.
     """
-    from ..mesh.validate import read_image as decode, read_regular
+    from ..mesh import validate
 
     from_bytes = isinstance(source, (bytes, bytearray))
     name = name or ("" if from_bytes else str(source))
-    data = bytes(source) if from_bytes else read_regular(Path(source), "image file")
+    data = bytes(source) if from_bytes else validate.read_regular(Path(source), "image file")
     try:
-        image = decode(data, name)
+        image = validate.read_image(data, name)
     except MeshError:
         if data[:2] != b"\x01\xda":
             raise
@@ -124,7 +125,7 @@ def read_image(source, name: str = "", alpha: str = "composite") -> np.ndarray:
         except Exception as sgi_error:
             raise MeshError(f"{name}: cannot read image: {sgi_error}") from None
     try:
-        if alpha == "composite" and image.mode in ("RGBA", "LA", "PA") or (
+        if (alpha == "composite" and image.mode in ("RGBA", "LA", "PA")) or (
                 image.mode == "P" and "transparency" in image.info):
             image = Image.alpha_composite(Image.new("RGBA", image.size, (255, 255, 255, 255)), image.convert("RGBA"))
         return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()

@@ -76,8 +76,9 @@ def decimate(points: np.ndarray, triangles: np.ndarray, target: int, track: bool
     no face uses are dropped. `triangles` must hold more than `target` faces.
 
     Returns positions (V', 3) float64, faces (F', 3) int64 and, with `track`, the output vertex each
-    input vertex collapsed into ((V,) int64, -1 where it ended in no face), else None. Tracking replays
-    the recorded collapses, which yields the same faces; the positions are the simplifier's own.
+    input vertex collapsed into ((V,) int64, -1 where it ended in no face), else None. Tracking takes
+    the result from replaying the recorded collapses, so that the map and the arrays agree: the same
+    faces, with positions equal to the simplifier's up to rounding.
     """
     import fast_simplification
 
@@ -86,9 +87,10 @@ def decimate(points: np.ndarray, triangles: np.ndarray, target: int, track: bool
         try:
             if not track:
                 return (*fast_simplification.simplify(positions, faces, target_count=count), None)
-            new_positions, new_faces, collapses = fast_simplification.simplify(
-                positions, faces, target_count=count, return_collapses=True)
-            _, _, mapping = fast_simplification.replay_simplification(positions, faces.astype(np.int64), collapses)
+            _, _, collapses = fast_simplification.simplify(positions, faces, target_count=count,
+                                                           return_collapses=True)
+            new_positions, new_faces, mapping = fast_simplification.replay_simplification(
+                positions, faces.astype(np.int64), collapses)
         except (ValueError, RuntimeError) as error:
             raise MeshError(f"simplification failed: {error}") from None
         return new_positions, new_faces, np.asarray(mapping, dtype=np.int64)
@@ -110,7 +112,8 @@ def decimate(points: np.ndarray, triangles: np.ndarray, target: int, track: bool
 
 
 def simplify(mesh: Mesh, target_faces: int) -> Mesh:
-    """`decimate` a Mesh to at most about `target_faces` faces, keeping its attributes.
+    """`decimate` a Mesh to at most `target_faces` faces (where the simplifier gets there), keeping its
+    attributes.
 
     UVs and the material of each face follow the surviving vertices (each takes those of one original
     vertex that collapsed into it); normals are recomputed. A mesh already at or below the target is
