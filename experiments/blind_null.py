@@ -13,13 +13,31 @@ import argparse
 
 import numpy as np
 import torch
-from blind_lattice import render_pair
 
 import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset
-from meshseal.framing import object_mask
+from meshseal.evaluation.metrics import visibility
+from meshseal.reading.framing import object_mask
 from meshseal.models.surface import VIEW_SIZE, read_picture
+from meshseal.render import MeshBatch, MeshRenderer, sample_seed_cameras, sample_seed_lights
+
+
+def render_pair(item: dict, texture: torch.Tensor, marked: torch.Tensor, generator: torch.Generator,
+                height: int, width: int):
+    """The original and the marked `item` rendered from one seed-range camera and light drawn from
+    `generator`, as 8-bit pictures (H, W, 3), and the mark's visibility over the object's pixels."""
+    cameras, lights = sample_seed_cameras(1, generator), sample_seed_lights(1, generator)
+    renderer, pictures = MeshRenderer(), []
+    for tex in (texture, marked):
+        batch = MeshBatch.from_tensors(item["positions"][None], item["normals"][None], item["uvs"][None],
+                                       item["faces"], tex)
+        with torch.no_grad():
+            pictures.append(renderer(batch, cameras, lights, height, width).rgba[0])
+    original, picture = (torch.round(p[..., :3].clamp(0, 1) * 255) / 255 for p in pictures)
+    coverage = pictures[0][..., 3] > 0.5
+    return original, picture, visibility(original.permute(2, 0, 1)[None], picture.permute(2, 0, 1)[None],
+                                          coverage[None])
 
 
 def main() -> None:

@@ -2,14 +2,14 @@
 step in the seed paper's protocol: the test items with spherical UVs and a noise or real texture (what
 `meshseal eval --protocol seed` reads), the seed's camera and light ranges, 600 x 400 pictures by our
 renderer, read from the picture alone. Each flag turns one of the shipped model's steps back into what
-was tried first, so that the table in docs/training.md comes from this one command:
+was tried first, so that the table in docs/mark.md comes from this one command:
 
 python experiments/blind_surface.py --data data --bits 8 --cells 32 --psnr 28 [--uv-only] [--isotropic 2]
     [--floor 0.3] [--pool 1] [--codes sequency] [--host-free] [--stretches 0.95 1 1.05] [--sphere]
 
 --uv-only: each texel's column from the UV map alone (the outermost point where several share it), not
 from the points the seed's views show; --isotropic S: the picture's chroma high-passed by an isotropic
-Gaussian of S pixels (as the lattice mark's whitening) instead of along rows; --pool P: a cell's evidence
+Gaussian of S pixels (`whiten` below) instead of along rows; --pool P: a cell's evidence
 is its sum over count^P; --codes sequency: the Walsh functions with the fewest sign changes, unscrambled;
 --host-free: read the difference between the marked and the original picture (what the host texture
 costs); --sphere: a UV sphere with noise textures; --own: the test items with their own UV atlases; --split
@@ -25,11 +25,59 @@ import time
 
 import numpy as np
 import torch
-from blind_lattice import render_pair, sphere_items, whiten
 
 import meshseal.models.surface as surface
-from meshseal.framing import object_mask
+from meshseal.mesh import spherical_uv
+from meshseal.evaluation.metrics import visibility
+from meshseal.render import MeshBatch, MeshRenderer, sample_seed_cameras, sample_seed_lights
+from meshseal.reading.framing import object_mask
 from meshseal.models.surface import SurfaceCodeEncoder, read_picture, reference_columns, texel_columns
+
+
+def whiten(image: np.ndarray, mask: np.ndarray, colour: np.ndarray, sigma: float = 2.0) -> np.ndarray:
+    """The picture's chroma along the mark's colour, minus its local mean, over its local RMS: shading
+    and smooth host texture drop out, busy and dark regions count alike. (H, W, 3) -> (H, W), 0 off
+    the object."""
+    from scipy import ndimage
+
+    signal = image @ colour
+    weight = ndimage.gaussian_filter(mask.astype(float), sigma) + 1e-6
+    mean = ndimage.gaussian_filter(signal * mask, sigma) / weight
+    detail = (signal - mean) * mask
+    energy = ndimage.gaussian_filter(detail * detail, 3 * sigma) / ndimage.gaussian_filter(mask.astype(float), 3 * sigma).clip(1e-6)
+    return np.where(mask, detail / np.sqrt(energy + 1e-8), 0.0)
+
+
+def sphere_items(count: int):
+    """A UV sphere (icosphere, spherical UVs) with a different seed-style noise texture each time: the
+    shape spherical UVs suit best, to tell the code's limits from the mapping's."""
+    import trimesh
+
+    from meshseal.data.process import noise_texture
+
+    sphere = trimesh.creation.icosphere(5)
+    positions = torch.tensor(sphere.vertices, dtype=torch.float32)
+    for index in range(count):
+        texture = torch.tensor(noise_texture(np.random.default_rng(index), 128)).permute(2, 0, 1).float() / 255
+        yield {"id": f"sphere-{index}", "positions": positions, "uvs": spherical_uv(positions), "texture": texture,
+               "normals": torch.tensor(sphere.vertex_normals, dtype=torch.float32), "faces": torch.tensor(sphere.faces)}
+
+
+def render_pair(item: dict, texture: torch.Tensor, marked: torch.Tensor, generator: torch.Generator,
+                height: int, width: int):
+    """The original and the marked `item` rendered from one seed-range camera and light drawn from
+    `generator`, as 8-bit pictures (H, W, 3), and the mark's visibility over the object's pixels."""
+    cameras, lights = sample_seed_cameras(1, generator), sample_seed_lights(1, generator)
+    renderer, pictures = MeshRenderer(), []
+    for tex in (texture, marked):
+        batch = MeshBatch.from_tensors(item["positions"][None], item["normals"][None], item["uvs"][None],
+                                       item["faces"], tex)
+        with torch.no_grad():
+            pictures.append(renderer(batch, cameras, lights, height, width).rgba[0])
+    original, picture = (torch.round(p[..., :3].clamp(0, 1) * 255) / 255 for p in pictures)
+    coverage = pictures[0][..., 3] > 0.5
+    return original, picture, visibility(original.permute(2, 0, 1)[None], picture.permute(2, 0, 1)[None],
+                                          coverage[None])
 
 
 def uv_only_columns(positions, normals, faces, uvs, height, width):
@@ -48,7 +96,7 @@ def shared_texels(positions, normals, faces, uvs, height, width) -> float:
 
 
 def read_isotropic(encoder: SurfaceCodeEncoder, image: np.ndarray, mask: np.ndarray, sigma: float) -> torch.Tensor:
-    """`read_picture` with the lattice mark's isotropic whitening instead of the row high-pass."""
+    """`read_picture` with an isotropic whitening (`whiten`) instead of the row high-pass."""
     return read_picture(encoder, image, mask, whiten(image, mask, encoder.colour.numpy().astype(np.float64), sigma))
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,14 +28,12 @@ import torch
 import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset, collate
-from meshseal.metrics import visibility
+from meshseal.evaluation.metrics import visibility
 from meshseal.models.spread import SpreadSpectrumEncoder, cell_pixels
-from meshseal.pipeline import sample_views
-from meshseal.register import pose_error
+from meshseal.training.views import random_backgrounds, sample_views
+from meshseal.reading.registration import pose_error
 from meshseal.render import MeshBatch, MeshRenderer
 
-sys.path.insert(0, str(Path(__file__).parent))
-from registration_conditions import background_for  # noqa: E402
 
 
 def cell_size(item: dict, chips: int) -> float:
@@ -68,7 +65,6 @@ def main() -> None:
     else:
         small, which = [index for index in range(count) if sizes[index] > args.above], f"over {args.above}"
     renderer = MeshRenderer()
-    textures = sorted((args.data / "textures").glob("*.png"))
     print(f"{len(small)} meshes with cells {which} px: {small}")
     print("| cells | meshes | object PSNR | object FLIP | bits, true camera | bits, registered | registration < 0.5 px | detected (FPR 1e-6) |")
     print("|---|---|---|---|---|---|---|---|")
@@ -89,7 +85,7 @@ def main() -> None:
                 renders = [renderer(MeshBatch.from_tensors(positions, normals, uvs, faces, t), cameras, lights, 256, 256,
                                     torch.zeros(1, 3)) for t in (texture, marked)]
                 alpha = renders[1].rgba[0, ..., 3][None]
-                picture = (renders[1].image[0] + (1 - alpha) * background_for("plain", 256, generator, textures)).clamp(0, 1)
+                picture = (renders[1].image[0] + (1 - alpha) * random_backgrounds(1, generator)[0][:, None, None].expand(3, 256, 256)).clamp(0, 1)
                 seen = visibility(renders[0].image, renders[1].image, alpha > 0.5)
             pixels = (picture.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8).astype(np.float32) / 255
             agree = lambda r: float(np.mean([int(b) for b in wm.decide([r]).bits] == message[0].numpy()))  # noqa: E731

@@ -9,7 +9,7 @@ screenshot is (camera found by registration): bit accuracy, registration success
 detection rate at the FPR 1e-6 threshold and exact-message rate; and the bit accuracy with the true
 camera for comparison. The paper's Table 9 (decoder trained through its own renderer) stands beside.
 
-    python experiments/engines.py --out docs/engines.md [--engines ours gl cycles eevee workbench]
+    python experiments/engines.py --out runs/engines.md [--engines ours gl cycles eevee workbench]
         [--data data --meshes 60] [--views 2] [--size 256] [--sampler seed] [--jsonl FILE [--report]]
 
 With `--model blind8` (or `blind`) the blind model instead, in the seed paper's protocol: the test items
@@ -34,9 +34,9 @@ from PIL import Image
 import meshseal
 from meshseal import payload
 from meshseal.mesh import normalize, to_z_up
-from meshseal.metrics import visibility
-from meshseal.pipeline import sample_views
-from meshseal.register import pose_error
+from meshseal.evaluation.metrics import visibility
+from meshseal.training.views import sample_views
+from meshseal.reading.registration import pose_error
 from meshseal.render import make_renderer
 
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures"

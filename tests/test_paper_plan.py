@@ -1,16 +1,13 @@
-"""experiments/paper.py's plan: shards split the re-run without training a run twice or apart from the run
-it starts from (no training here)."""
+"""The paper re-run's plan (meshseal.evaluation.paper_plan, run by experiments/paper.py): shards split the
+re-run without training a run twice or apart from the run it starts from (no training here)."""
 
 import argparse
-import sys
 from pathlib import Path
 
+from meshseal.evaluation import paper_plan as paper
+from meshseal.training.train import TrainConfig
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "experiments"))
-
-import paper  # noqa: E402
-
-from meshseal.train import TrainConfig  # noqa: E402
 
 
 def _plan(shard, seeds=(0, 1)):
