@@ -34,7 +34,9 @@ import torch
 import meshseal
 from meshseal.mesh import Material, Mesh, normalize, to_z_up
 from meshseal.payload import key_seed
-from meshseal.pipeline import read_bits, relit_residual, sample_views
+from meshseal.methods import read_bits
+from meshseal.reading.relight import relit_residual
+from meshseal.render.views import sample_views
 from meshseal.render import MeshBatch, MeshRenderer
 
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures"

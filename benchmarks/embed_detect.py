@@ -196,7 +196,7 @@ def main() -> None:
     from PIL import Image
 
     if watermarker.informed:
-        from meshseal.mesh.io import image_bytes
+        from meshseal.reading.pictures import image_bytes
 
         original = watermarker.original(mesh)
         image = Image.open(io.BytesIO(image_bytes(Image.fromarray(picture), camera=camera)))

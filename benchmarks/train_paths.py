@@ -35,7 +35,7 @@ def _sync(device: str) -> None:
 
 def measure(config, device: str, steps: int, warmup: int, out: Path) -> tuple[float, float]:
     """(pictures per second, seconds to build the trainer: the bake for the G-buffer path)."""
-    from meshseal.train import Trainer
+    from meshseal.training.train import Trainer
 
     started = time.perf_counter()
     trainer = Trainer(config, out, device=device, log=lambda *_: None)
@@ -64,7 +64,7 @@ def main() -> int:
                         help="also time the rendering pass at these render sizes (the object then framed from a "
                              "large render, as the G-buffer views are)")
     args = parser.parse_args()
-    from meshseal.train import TrainConfig
+    from meshseal.training.train import TrainConfig
 
     config = TrainConfig.load(args.config)
     config.data = str(args.data)

@@ -20,8 +20,8 @@ from pathlib import Path
 import torch
 
 from meshseal.data.dataset import MeshDataset
-from meshseal.evaluate import evaluate
-from meshseal.train import TrainConfig, Trainer
+from meshseal.training.validate import evaluate
+from meshseal.training.train import TrainConfig, Trainer
 
 SCALED = ("warmup_steps", "distortion_start", "reference_steps", "pretrain_steps")
 

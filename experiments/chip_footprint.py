@@ -30,7 +30,8 @@ from meshseal import payload
 from meshseal.data.dataset import MeshDataset, collate
 from meshseal.evaluation.metrics import visibility
 from meshseal.models.spread import SpreadSpectrumEncoder, cell_pixels
-from meshseal.training.views import random_backgrounds, sample_views
+from meshseal.training.views import random_backgrounds
+from meshseal.render.views import sample_views
 from meshseal.reading.registration import pose_error
 from meshseal.render import MeshBatch, MeshRenderer
 

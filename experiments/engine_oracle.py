@@ -22,7 +22,8 @@ import meshseal
 from meshseal import payload, pipeline
 from meshseal.mesh import normalize, to_z_up
 from meshseal.models.spread import soft_bits
-from meshseal.pipeline import sample_views, spread_evidence
+from meshseal.render.views import sample_views
+from meshseal.methods.spread import spread_evidence
 from meshseal.render import make_renderer, pixels_at
 
 

@@ -18,7 +18,7 @@ from PIL import Image
 
 import meshseal
 from meshseal.mesh import normalize, to_z_up
-from meshseal.pipeline import sample_views
+from meshseal.render.views import sample_views
 from meshseal.render import make_renderer
 from engines import BACKGROUND, meshes  # experiments/engines.py
 

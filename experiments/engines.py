@@ -35,7 +35,7 @@ import meshseal
 from meshseal import payload
 from meshseal.mesh import normalize, to_z_up
 from meshseal.evaluation.metrics import visibility
-from meshseal.training.views import sample_views
+from meshseal.render.views import sample_views
 from meshseal.reading.registration import pose_error
 from meshseal.render import make_renderer
 

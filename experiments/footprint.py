@@ -27,9 +27,13 @@ import torch.nn.functional as F
 import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset, collate
-from meshseal.distortions import gaussian_blur
+from meshseal.imaging import gaussian_blur
 from meshseal.models.spread import soft_bits
-from meshseal.pipeline import picture_footprint, random_backgrounds, relit_residual, sample_views, spread_evidence
+from meshseal.reading.footprint import picture_footprint
+from meshseal.training.views import random_backgrounds
+from meshseal.render.views import sample_views
+from meshseal.reading.relight import relit_residual
+from meshseal.methods.spread import spread_evidence
 from meshseal.render import MeshBatch, MeshRenderer
 
 

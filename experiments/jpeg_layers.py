@@ -28,7 +28,8 @@ from meshseal import payload
 from meshseal.data.dataset import MeshDataset
 from meshseal.models.spread import SpreadSpectrumEncoder, bit_weights, soft_bits
 from meshseal.mesh import normalize, to_z_up
-from meshseal.pipeline import sample_views, spread_evidence
+from meshseal.render.views import sample_views
+from meshseal.methods.spread import spread_evidence
 from meshseal.render import make_renderer
 
 

@@ -29,9 +29,10 @@ import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset
 from meshseal.mesh import load, normalize, to_z_up
-from meshseal.metrics import visibility
+from meshseal.evaluation.metrics import visibility
 from meshseal.models.spread import COLOURS, SpreadSpectrumEncoder, soft_bits
-from meshseal.pipeline import sample_views, spread_evidence
+from meshseal.render.views import sample_views
+from meshseal.methods.spread import spread_evidence
 from meshseal.render import MeshBatch, MeshRenderer
 
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures"

@@ -1,4 +1,4 @@
-"""Palette meshes with and without charts for their palette faces (`mesh.charts`), per rendering engine.
+"""Palette meshes with and without charts for their palette faces (`methods.charts`), per rendering engine.
 
 For each test mesh that uses its texture as a colour palette (half its textured surface or more on faces
 without UV area), a 4-character message is embedded as `meshseal embed` embeds it (palette faces charted
@@ -27,10 +27,11 @@ import meshseal
 from meshseal import payload
 from meshseal.api import PALETTE_WARNING
 from meshseal.data.dataset import MeshDataset
-from meshseal.mesh import charts, normalize, to_z_up
-from meshseal.metrics import visibility
+from meshseal.mesh import normalize, to_z_up
+from meshseal.methods import charts
+from meshseal.evaluation.metrics import visibility
 from meshseal.models.spread import palette_share
-from meshseal.pipeline import sample_views
+from meshseal.render.views import sample_views
 from meshseal.render import make_renderer
 
 from engines import BACKGROUND, item_mesh, png_without_metadata  # noqa: E402  (experiments/ on the path)

@@ -30,7 +30,7 @@ import torch
 
 from meshseal.data.dataset import MeshDataset
 from meshseal.training.distortions import Distortions3D
-from meshseal.evaluation.evaluate import evaluate
+from meshseal.training.validate import evaluate
 from meshseal.evaluation.paper_plan import (BITS, PAPER_KINDS, PAPER_PICTURE, SURFACE_ROW, TABLE9_PAPER, TABLES,
                                            done_keys_of_seed, plan, planned, row_bits)
 from meshseal.models.io import load_model

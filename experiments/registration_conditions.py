@@ -32,8 +32,10 @@ from PIL import Image
 import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset, collate
-from meshseal.pipeline import batch_mark_grid, batch_texels_used, random_backgrounds, sample_views
-from meshseal.register import pose_error
+from meshseal.methods.batches import batch_mark_grid, batch_texels_used
+from meshseal.training.views import random_backgrounds
+from meshseal.render.views import sample_views
+from meshseal.reading.registration import pose_error
 from meshseal.render import MeshBatch, MeshRenderer
 
 CONDITIONS = ("plain", "gradient", "busy", "cut", "512", "1024", "jpeg75")

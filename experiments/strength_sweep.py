@@ -20,9 +20,10 @@ import torch
 
 import meshseal
 from meshseal import payload
-from meshseal.commands.model import embed_report
+from meshseal.evaluation.reports import embed_report
 from meshseal.mesh import normalize, to_z_up
-from meshseal.pipeline import read_bits, sample_views
+from meshseal.methods import read_bits
+from meshseal.render.views import sample_views
 from meshseal.render import MeshBatch, MeshRenderer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))

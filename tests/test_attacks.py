@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from meshseal import attacks
+from meshseal.evaluation import attacks as attacks
 
 
 @pytest.fixture

@@ -97,9 +97,9 @@ def test_registration_holds_on_a_workbench_picture_of_the_deck_chair():
     """Workbench's studio light and mipmapped textures leave the original's texture a poor fit (misfit
     about 0.9 at the true pose, 0.01 on our own pictures): the texture stage once drifted 2 px off the
     pose the thin chair's silhouette had found to 0.06 px. The silhouette now vetoes such a move."""
-    from meshseal.framing import object_mask
-    from meshseal.pipeline import sample_views
-    from meshseal.register import pose_error, register_with_masks
+    from meshseal.reading.framing import object_mask
+    from meshseal.render.views import sample_views
+    from meshseal.reading.registration import pose_error, register_with_masks
 
     chair = meshseal.load_mesh(FIXTURES / "sh3d_deckChair" / "deckChair.obj")
     mesh = normalize(to_z_up(chair))

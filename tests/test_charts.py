@@ -1,4 +1,4 @@
-"""Palette faces (UVs meeting at a point) get charts of their own (`mesh.charts`), so that a spread mark
+"""Palette faces (UVs meeting at a point) get charts of their own (`methods.charts`), so that a spread mark
 lies on them too: the charted mesh renders as the original, charting is deterministic, meshes that need
 none are left alone, and the mark on a palette mesh survives a file round trip through the CLI."""
 
@@ -13,7 +13,7 @@ import trimesh
 import meshseal
 from meshseal.cli import main
 from meshseal.mesh import Material, Mesh, normalize, save, to_z_up
-from meshseal.mesh.charts import chart_palette_faces, palette_surface_share
+from meshseal.methods.charts import chart_palette_faces, palette_surface_share
 from meshseal.render import MeshBatch, MeshRenderer, sample_any_lights, sample_any_view_cameras
 
 SWATCHES = ((0.8, 0.2, 0.1), (0.1, 0.5, 0.8), (0.9, 0.9, 0.3))

@@ -108,7 +108,7 @@ def test_corpus_size_and_classes(corpus):
 def test_every_picture_format_converts_to_the_same_rgb(corpus, tmp_path):
     """Grey, 16-bit, palette, CMYK, progressive, animated, TIFF, WebP, BMP: read once into float RGB in
     [0, 1] that matches the picture (JPEGs within their loss; grey ones against the grey reference)."""
-    from meshseal.api import _load_image
+    from meshseal.reading.pictures import load_picture
 
     reference = np.asarray(Image.open(corpus.reference).convert("RGB"), dtype=np.float32) / 255
     grey = np.asarray(Image.open(corpus.reference).convert("L"), dtype=np.float32) / 255
@@ -116,7 +116,7 @@ def test_every_picture_format_converts_to_the_same_rgb(corpus, tmp_path):
     for name, data in corpus.odd_pictures.items():
         path = tmp_path / f"{name}.img"
         path.write_bytes(data)
-        pixels, mask, _ = _load_image(path)
+        pixels, mask, _ = load_picture(path)
         assert pixels.dtype == np.float32 and pixels.shape == reference.shape, name
         assert 0.0 <= pixels.min() and pixels.max() <= 1.0, name
         expected = np.repeat(grey[..., None], 3, axis=-1) if name == "rgb16_tiff" else reference

@@ -6,8 +6,8 @@ import pytest
 import torch
 import trimesh
 
-from meshseal.framing import BOX_MARGIN
-from meshseal.pipeline import sample_views
+from meshseal.reading.framing import BOX_MARGIN
+from meshseal.render.views import sample_views
 from meshseal.render import MeshBatch, MeshRenderer
 from meshseal.training.gbuffer import GBuffers, bake_views, composite
 

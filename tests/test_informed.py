@@ -12,14 +12,14 @@ from PIL import Image
 
 from meshseal.cli import main
 from meshseal.errors import MeshsealError
-from meshseal.framing import boxes_from_mask, crop_boxes, object_mask
+from meshseal.reading.framing import boxes_from_mask, crop_boxes, object_mask
 from meshseal.mesh import load, normalize, to_z_up
-from meshseal.mesh.io import camera_from_dict, camera_to_dict
-from meshseal.pipeline import flattest_half, uv_maps
-from meshseal.register import crop_intrinsics, pose_error, refine_on_texture, register
+from meshseal.reading.pictures import camera_from_dict, camera_to_dict
+from meshseal.reading.relight import flattest_half, uv_maps
+from meshseal.reading.registration import crop_intrinsics, pose_error, refine_on_texture, register
 from meshseal.render import (MeshBatch, MeshRenderer, pixels_at, relight_fragments, sample_any_lights,
                              sample_any_view_cameras, surface_at_pixels, unrender)
-from meshseal.train import TrainConfig, Trainer
+from meshseal.training.train import TrainConfig, Trainer
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -145,7 +145,7 @@ def test_registration_tries_more_views_where_the_texture_disagrees(monkeypatch):
     """Where the view refined first is wrong (here forced: the first pass keeps only the candidate
     facing most away from the true camera), the texture explains the picture poorly and registration
     tries more candidate views (RETRY_KEEP), which find the view; without them it stays wrong."""
-    from meshseal import register as registration
+    from meshseal.reading import registration as registration
 
     mesh, (camera, lights) = _bunny(), _view(index=0)
     out = MeshRenderer()(mesh, camera, lights, 160, 160, (0.5, 0.5, 0.5))

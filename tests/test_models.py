@@ -7,9 +7,9 @@ import pytest
 import torch
 from PIL import Image
 
-from meshseal.distortions import Distortions2D, Distortions3D, jpeg, random_crop_faces, random_rotation
+from meshseal.training.distortions import Distortions2D, Distortions3D, jpeg, random_crop_faces, random_rotation
 from meshseal.errors import MeshsealError
-from meshseal.framing import boxes_from_mask, crop_boxes, object_mask
+from meshseal.reading.framing import boxes_from_mask, crop_boxes, object_mask
 from meshseal.models import ModelConfig, WatermarkModel
 from meshseal.models.io import load_model, save_model
 

@@ -10,10 +10,10 @@ from PIL import Image
 
 import meshseal
 from meshseal.cli import main
-from meshseal.framing import object_mask
+from meshseal.reading.framing import object_mask
 from meshseal.mesh import load, normalize, to_z_up
 from meshseal.render import MeshBatch, MeshRenderer, sample_any_lights, sample_any_view_cameras
-from meshseal.segment import busy_background, guided_object_mask, mask_iou, recut
+from meshseal.reading.segmentation import busy_background, guided_object_mask, mask_iou, recut
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -88,7 +88,7 @@ def test_a_cut_that_took_in_a_patch_of_the_background_is_mended_from_its_registr
     """A first guess of the object's pixels that also holds a square of the background: registered on
     it, the camera is off and the texture does not confirm it; `register_with_masks` with `recut` cuts
     again from that camera's silhouette and registers within half a pixel."""
-    from meshseal.register import ACCEPT_MISFIT, PICK_SIGMAS, pose_error, register_with_masks, texture_misfit
+    from meshseal.reading.registration import ACCEPT_MISFIT, PICK_SIGMAS, pose_error, register_with_masks, texture_misfit
 
     bunny = MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "bunny.glb"))))
     picture, truth, camera = _picture(bunny, _backdrop("gravel.png", 256), seed=5)
@@ -109,8 +109,8 @@ def test_a_picture_pasted_into_a_screenshot_is_found_and_a_plain_picture_is_left
     """`framing.inner_picture`: a render pasted into a light window with a dark title bar is found as
     the rectangle it fills; a picture of an object on a plain background, and a plain rectangle object,
     are not pictures within pictures."""
-    from meshseal.attacks import apply
-    from meshseal.framing import inner_picture
+    from meshseal.evaluation.attacks import apply
+    from meshseal.reading.framing import inner_picture
 
     ys, xs = np.mgrid[0:120, 0:160]
     render = np.zeros((120, 160, 3), dtype=np.float32) + np.float32([0.35, 0.3, 0.25])

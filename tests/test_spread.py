@@ -13,7 +13,8 @@ from meshseal.cli import main
 from meshseal.mesh import load, normalize, to_z_up
 from meshseal.models import ModelConfig, WatermarkModel
 from meshseal.models.spread import texels_used
-from meshseal.pipeline import read_bits, sample_views
+from meshseal.methods import read_bits
+from meshseal.render.views import sample_views
 from meshseal.render import MeshBatch, MeshRenderer
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -26,7 +27,7 @@ def _marked_and_original(strength: float = 1.0):
     mesh = normalize(to_z_up(load(FIXTURES / "bunny.glb")))
     message = torch.randint(0, 2, (1, 64), generator=torch.Generator().manual_seed(3)).float()
     texture = mesh.materials[0].texture.permute(2, 0, 1)[None]
-    marked_texture = model.mark_texture(texture, message, strength)
+    marked_texture = model.texture_encoder(texture, message, strength)
     return model, mesh, message, texture, marked_texture
 
 
@@ -70,7 +71,7 @@ def test_the_preview_has_a_labelled_row_per_material_texture(tmp_path):
     import numpy as np
     from PIL import Image
 
-    from meshseal.commands.model import write_preview
+    from meshseal.evaluation.reports import write_preview
     from meshseal.mesh import load
 
     original = load(FIXTURES / "multi_material.glb")
@@ -144,7 +145,7 @@ def test_embed_lowers_the_strength_to_keep_the_marks_flip_within_the_budget(tmp_
 
 
 def test_a_flip_budget_lowers_the_strength_by_the_power_law_and_keeps_it_where_nothing_is_seen():
-    from meshseal.metrics import MIN_STRENGTH, strength_within
+    from meshseal.evaluation.metrics import MIN_STRENGTH, strength_within
 
     tried = []
     flip_at = lambda s: (tried.append(s), 0.0311 * s ** 0.7)[1]  # noqa: E731 (the teapot's curve)
@@ -176,13 +177,13 @@ def test_the_mark_lies_on_the_texels_shown_at_the_target_psnr_there():
     message = torch.randint(0, 2, (1, 64), generator=torch.Generator().manual_seed(2)).float()
     used = torch.zeros(128, 128, dtype=torch.bool)
     used[:, :32] = True
-    residual = model.mark_texture(texture, message, 1.0, used=used) - texture
+    residual = model.texture_encoder(texture, message, 1.0, used=used) - texture
     assert residual[..., 32:].abs().max() == 0
     shown = 10 * torch.log10(1 / residual[..., :32].pow(2).mean())
     assert abs(float(shown) - 40.0) < 0.1  # a quarter of the texture: 6 dB quieter over all of it
     assert abs(float(10 * torch.log10(1 / residual.pow(2).mean())) - 46.02) < 0.1
-    upsampled = model.mark_texture(texture[..., :64, :64], message, 1.0, chips=128, used=used[::2, ::2]) - \
-        model.mark_texture(texture[..., :64, :64], message, 1.0, chips=128, used=None)
+    upsampled = model.texture_encoder(texture[..., :64, :64], message, 1.0, chips=128, used=used[::2, ::2]) - \
+        model.texture_encoder(texture[..., :64, :64], message, 1.0, chips=128, used=None)
     assert upsampled.shape[-1] == 128  # the mask follows the texture resampled to carry the grid
 
 
@@ -212,7 +213,7 @@ def test_embed_charts_a_texture_used_as_a_palette_and_warns_where_it_cannot(tmp_
 def test_many_views_of_one_mesh_read_as_one_by_one():
     """Pictures of one multi-material mesh from several cameras, read in one batch (a light fitted per
     picture), give exactly the evidence of reading them one at a time."""
-    from meshseal.pipeline import spread_evidence
+    from meshseal.methods.spread import spread_evidence
 
     model = WatermarkModel(SPREAD)
     original = MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "multi_material.glb"))))
@@ -255,8 +256,10 @@ def test_footprint_matches_how_the_picture_sampled_the_texture():
     footprint found is the one that made it. A point-sampled picture (ours) is read as before."""
     import torch.nn.functional as F
 
-    from meshseal.distortions import gaussian_blur
-    from meshseal.pipeline import picture_footprint, relit_residual, spread_evidence
+    from meshseal.imaging import gaussian_blur
+    from meshseal.reading.footprint import picture_footprint
+    from meshseal.reading.relight import relit_residual
+    from meshseal.methods.spread import spread_evidence
     from meshseal.models.spread import soft_bits
 
     model, message, original, marked = _original_and_marked_batches()
@@ -283,7 +286,7 @@ def test_each_pixels_brightness_is_taken_off():
     lit from behind, that Blender z-fights between) leave the mark's colour where it was: the matched
     filter fits each pixel's brightness first and reads such a picture about as well as a clean one."""
     from meshseal.models.spread import soft_bits
-    from meshseal.pipeline import spread_evidence
+    from meshseal.methods.spread import spread_evidence
 
     model, message, original, marked = _original_and_marked_batches()
     signs = 2 * message - 1
@@ -304,14 +307,15 @@ def test_light_added_in_linear_light_is_taken_off_where_it_is():
     dark channel in sRGB, partly along the mark's colour. The matched filter takes that direction off
     where the residual varies along it, and reads such a picture of a saturated asset far better than
     without; on a clean picture it changes almost nothing."""
-    import meshseal.pipeline as pipeline
+    import meshseal.reading.footprint as footprint
+    from meshseal.methods.spread import spread_evidence
     from meshseal.models.spread import soft_bits
 
     model, mesh, message, _, _ = _marked_and_original()
     tint = torch.tensor([0.05, 0.55, 1.0])  # a saturated blue, red near black (a deck chair's stripes)
     texture = (mesh.materials[0].texture * tint).permute(2, 0, 1)[None]
     original, marked = MeshBatch.from_mesh(mesh), MeshBatch.from_mesh(mesh)
-    original.textures, marked.textures = [texture[0]], [model.mark_texture(texture, message, 1.0)[0]]
+    original.textures, marked.textures = [texture[0]], [model.texture_encoder(texture, message, 1.0)[0]]
     signs = 2 * message - 1
     cameras, lights = sample_views(2, "seed", torch.Generator().manual_seed(4))
     to_linear = lambda x: torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)  # noqa: E731
@@ -322,15 +326,15 @@ def test_light_added_in_linear_light_is_taken_off_where_it_is():
         noisy = _quantise(to_srgb(to_linear(clean) + noise))
 
         def read(picture, ratio):
-            saved, pipeline.LINEAR_LIGHT_RATIO = pipeline.LINEAR_LIGHT_RATIO, ratio
+            saved, footprint.LINEAR_LIGHT_RATIO = footprint.LINEAR_LIGHT_RATIO, ratio
             try:
-                evidence = pipeline.spread_evidence(model, original, picture, cameras)
+                evidence = spread_evidence(model, original, picture, cameras)
             finally:
-                pipeline.LINEAR_LIGHT_RATIO = saved
+                footprint.LINEAR_LIGHT_RATIO = saved
             return float((soft_bits(model.texture_encoder, evidence) * signs).mean())
 
-        taken_off, kept = read(noisy, pipeline.LINEAR_LIGHT_RATIO), read(noisy, 1e9)  # 1e9: never taken off
-        clean_now, clean_before = read(_quantise(clean), pipeline.LINEAR_LIGHT_RATIO), read(_quantise(clean), 1e9)
+        taken_off, kept = read(noisy, footprint.LINEAR_LIGHT_RATIO), read(noisy, 1e9)  # 1e9: never taken off
+        clean_now, clean_before = read(_quantise(clean), footprint.LINEAR_LIGHT_RATIO), read(_quantise(clean), 1e9)
     assert taken_off > 1.3 * kept
     assert clean_now > 0.95 * clean_before
 
@@ -349,7 +353,9 @@ def test_local_mean_averages_over_covered_pixels_only():
 def test_a_picture_without_wholly_covered_pixels_reads_as_point_samples():
     """A tiny or thin object may leave no pixel that every footprint covers: nothing to compare, so
     the picture keeps point samples (this crashed on an empty reshape)."""
-    from meshseal.pipeline import picture_footprint, relit_residual, spread_evidence
+    from meshseal.reading.footprint import picture_footprint
+    from meshseal.reading.relight import relit_residual
+    from meshseal.methods.spread import spread_evidence
 
     model, _, original, marked = _original_and_marked_batches()
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
@@ -367,7 +373,7 @@ def test_untextured_materials_weigh_nothing():
     from dataclasses import replace
 
     import meshseal
-    from meshseal.pipeline import spread_evidence
+    from meshseal.methods.spread import spread_evidence
 
     model = WatermarkModel(SPREAD)
     bunny = normalize(to_z_up(load(FIXTURES / "bunny.glb")))
@@ -435,7 +441,7 @@ def _assert_read_on_either_grid(wm, mesh, marked):
     bits = payload.encode("ab42", None, 64)[None]
     texture = mesh.materials[0].texture.permute(2, 0, 1)[None]
     old_style = mesh.copy()
-    old_style.materials[0].texture = wm.model.mark_texture(texture, bits, 1.0, payload.key_seed(None), 128)[0].permute(1, 2, 0)
+    old_style.materials[0].texture = wm.model.texture_encoder(texture, bits, 1.0, payload.key_seed(None), 128)[0].permute(1, 2, 0)
 
     def detection(shown):
         with torch.no_grad():
@@ -459,8 +465,8 @@ def test_a_minified_texture_is_marked_on_coarser_cells_and_either_grid_is_read()
     bunny = load(FIXTURES / "bunny.glb")
     small = replace(bunny, uvs=bunny.uvs * 8)  # the texture repeated 8 x 8 times as often over the surface
     model = WatermarkModel(SPREAD)
-    assert model.mark_grid(bunny.positions, bunny.faces, bunny.uvs) == 128
-    assert model.mark_grid(small.positions, small.faces, small.uvs) == 64
+    assert model.texture_encoder.grid_for(bunny.positions, bunny.faces, bunny.uvs) == 128
+    assert model.texture_encoder.grid_for(small.positions, small.faces, small.uvs) == 64
     encoder = model.texture_encoder
     assert encoder.grids_to_read(bunny.positions, bunny.faces, bunny.uvs) == (128,)  # no second try to pay for
     assert encoder.grids_to_read(small.positions, small.faces, small.uvs) == (128, 64)
@@ -478,14 +484,14 @@ def test_a_magnified_texture_is_marked_on_finer_cells_of_a_resampled_texture_and
     from dataclasses import replace
 
     from meshseal.api import Watermarker
-    from meshseal.commands.model import embed_report
+    from meshseal.evaluation.reports import embed_report
     from meshseal.models.spread import carrier, resampled_like
 
     bunny = load(FIXTURES / "bunny.glb")
     large = replace(bunny, uvs=bunny.uvs * 0.25 + 0.3)  # a quarter of the texture, 4x magnified
     model = WatermarkModel(SPREAD)
     encoder = model.texture_encoder
-    assert model.mark_grid(large.positions, large.faces, large.uvs) == 512
+    assert model.texture_encoder.grid_for(large.positions, large.faces, large.uvs) == 512
     assert encoder.grids_to_read(large.positions, large.faces, large.uvs) == (128, 512)
     texture = large.materials[0].texture.permute(2, 0, 1)[None]  # 256^2
     assert carrier(texture, 128) is texture and carrier(texture, 512).shape[-2:] == (512, 512)
@@ -505,13 +511,13 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     registration's alternatives and keeps the one whose mark is found; the p-value pays x3 at the
     registered camera or its sharpened one and x3K at an alternative; unmarked pictures stay
     undetected; pooling skips it."""
-    import meshseal.api as api
+    import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
-    from meshseal.register import Alternative
+    from meshseal.reading.registration import Alternative
 
     model, message, original, marked = _original_and_marked_batches()
-    marked.textures = [model.mark_texture(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
+    marked.textures = [model.texture_encoder(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
     watermarker = Watermarker(model)  # reads under the public key's pattern
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
     turned = replace(cameras, eye=cameras.eye * torch.tensor([-1.0, -1.0, 1.0]))  # half a turn about the vertical
@@ -549,15 +555,15 @@ def test_a_camera_a_fraction_of_a_pixel_off_is_sharpened_on_the_reading_residual
     256^2): a camera 0.19 px off misses the mark. `register.sharpen` brings it within a few hundredths
     of a pixel of the true camera, and `look_again` reads the mark there, paying x2R (no alternatives:
     two stages, R sharpening rounds)."""
-    import meshseal.api as api
+    import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
-    from meshseal.register import _moved, pose_error, sharpen
+    from meshseal.reading.registration import _moved, pose_error, sharpen
 
     model, message, original, marked = _original_and_marked_batches()
     noise = torch.rand(3, 512, 512, generator=torch.Generator().manual_seed(0))
     original.textures = [noise]
-    marked.textures = [model.mark_texture(noise[None], message, 1.0, payload.key_seed(None))[0]]
+    marked.textures = [model.texture_encoder(noise[None], message, 1.0, payload.key_seed(None))[0]]
     watermarker = Watermarker(model)
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
     with torch.no_grad():
@@ -580,13 +586,13 @@ def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_
     its silhouettes alone) and finished on the texture only if that reading hints at one: the twin
     view is finished and found, the view that shows nothing is never finished, and the p-value still
     pays x3K for every alternative."""
-    import meshseal.api as api
+    import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
-    from meshseal.register import Alternative
+    from meshseal.reading.registration import Alternative
 
     model, message, original, marked = _original_and_marked_batches()
-    marked.textures = [model.mark_texture(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
+    marked.textures = [model.texture_encoder(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
     watermarker = Watermarker(model)
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
     turned = replace(cameras, eye=cameras.eye * torch.tensor([-1.0, -1.0, 1.0]))
@@ -610,8 +616,8 @@ def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_
 
 
 def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(tmp_path):
-    """`meshseal detect --workers N` sends readings between processes: a registered one comes back
-    settled (no picture, mask or refinement closures), so it pickles."""
+    """`meshseal detect --workers N` sends results between processes: a Detection, or with --pool a
+    registered reading settled (no picture, mask or refinement closures), so both pickle."""
     import pickle
 
     from PIL import Image
@@ -624,6 +630,10 @@ def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(t
     with torch.no_grad():
         picture = _quantise(MeshRenderer()(marked, cameras, lights, 128, 128, (0.5, 0.5, 0.5)).image)[0]
     Image.fromarray((picture.permute(1, 2, 0).numpy() * 255).round().astype("uint8")).save(tmp_path / "p.png")
-    path, reading, error = _read_one(Watermarker(model), original, tmp_path / "p.png", True, 60.0, None, None, True)
-    assert error is None and reading.camera == "registered" and reading.second_look == () and reading.tries >= 2
-    assert pickle.loads(pickle.dumps(reading)).tries == reading.tries
+    watermarker = Watermarker(model)
+    path, reading, error = _read_one(watermarker, original, tmp_path / "p.png", True, 60.0, None, None, True)  # --pool
+    assert error is None and reading.camera == "registered" and reading.second_look == ()
+    assert torch.equal(pickle.loads(pickle.dumps(reading)).evidence, reading.evidence)
+    path, result, error = _read_one(watermarker, original, tmp_path / "p.png", True, 60.0, None, None, False)
+    assert error is None and result.camera == "registered"  # a Detection, its second look taken in the worker
+    assert pickle.loads(pickle.dumps(result)).to_dict() == result.to_dict()

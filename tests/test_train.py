@@ -17,7 +17,7 @@ from meshseal.cli import main
 from meshseal.errors import MeshsealError
 from meshseal.data.build import build
 from meshseal.models.io import load_model
-from meshseal.train import TrainConfig, Trainer
+from meshseal.training.train import TrainConfig, Trainer
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -242,7 +242,7 @@ def test_api_detect_accepts_arrays_any_size_and_alpha(dataset, tmp_path):
 
 def test_finetune_caches_tunes_only_the_decoder_and_resumes(dataset, tmp_path):
     from meshseal.data.dataset import MeshDataset
-    from meshseal.finetune import FinetuneConfig, finetune
+    from meshseal.training.finetune import FinetuneConfig, finetune
 
     Trainer(_config(dataset), tmp_path / "run", log=lambda *_: None).fit()
     model = load_model(tmp_path / "run" / "model.safetensors")
@@ -266,7 +266,7 @@ def test_finetune_caches_tunes_only_the_decoder_and_resumes(dataset, tmp_path):
 
 def test_finetune_refuses_a_matched_filter(dataset, tmp_path):
     from meshseal.data.dataset import MeshDataset
-    from meshseal.finetune import FinetuneConfig, finetune
+    from meshseal.training.finetune import FinetuneConfig, finetune
 
     with pytest.raises(meshseal.MeshsealError, match="nothing to fine-tune"):
         finetune(meshseal.load().model, MeshDataset(dataset, "train"), MeshDataset(dataset, "test"),
@@ -276,7 +276,7 @@ def test_finetune_refuses_a_matched_filter(dataset, tmp_path):
 def test_registered_eval_counts_refused_pictures_and_stays_strict_json(dataset, monkeypatch):
     """A picture `meshseal detect` refuses counts at chance and as infinitely off in the quantiles; the
     report stays strict JSON (no Infinity or NaN) when every picture is refused."""
-    from meshseal import evaluate as E
+    from meshseal.evaluation import evaluate as E
     from meshseal.data.dataset import MeshDataset
 
     reading = E._read_or_none
@@ -301,7 +301,7 @@ def test_train_device_errors_are_clear(dataset, tmp_path):
 def test_camera_known_eval_reads_as_shipped_without_registering(dataset, monkeypatch):
     """`register=False`: every picture is read once, with its true camera, never registered; the report
     holds the camera-known figures alone, and they match the full run's."""
-    from meshseal import evaluate as E
+    from meshseal.evaluation import evaluate as E
     from meshseal.data.dataset import MeshDataset
 
     calls = []
@@ -332,9 +332,9 @@ def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
 def test_registered_eval_marks_each_mesh_under_embeds_flip_budget(dataset):
     """Each mesh is marked as `meshseal embed` marks it, within the FLIP budget: a budget out of reach
     lowers every mesh's strength to the floor, which the texture PSNR shows; none marks at strength 1."""
-    from meshseal import evaluate as E
+    from meshseal.evaluation import evaluate as E
     from meshseal.data.dataset import MeshDataset
-    from meshseal.metrics import MIN_STRENGTH
+    from meshseal.evaluation.metrics import MIN_STRENGTH
 
     model, test = meshseal.load().model, MeshDataset(dataset, "test")
     plain = E.evaluate_registered(model, test, n_meshes=2, size=64, register=False, max_flip=None)

@@ -36,11 +36,13 @@ from scipy import stats
 
 import meshseal
 from meshseal import payload
-from meshseal.api import _Reading
+from meshseal.reading.read import Reading
 from meshseal.data.dataset import MeshDataset, collate
-from meshseal.distortions import gaussian_blur
-from meshseal.pipeline import (batch_mark_grid, batch_texels_used, charted_item, random_backgrounds, sample_views,
-                               spread_evidence)
+from meshseal.imaging import gaussian_blur
+from meshseal.methods.batches import batch_mark_grid, batch_texels_used, charted_item
+from meshseal.training.views import random_backgrounds
+from meshseal.render.views import sample_views
+from meshseal.methods.spread import spread_evidence
 from meshseal.render import MeshBatch, MeshRenderer
 
 
@@ -83,7 +85,7 @@ def pvalues(wm, evidence: torch.Tensor, tries: int = 1) -> tuple[torch.Tensor, f
     """Soft bits of one picture's (or a pool's) cell sums (1, C) and its detection p-value as
     `Watermarker.decide` gives it (the likeliest of the grids read; Bonferroni over them and over the
     `tries` a second look made) under the exact null, and under the N(0, 1) null for comparison."""
-    soft, weights, grids = wm._best_grid(evidence, None, None)
+    soft, weights, grids = wm.method.soft_bits(evidence, None, None)
     return (soft, min(1.0, grids * tries * float(payload.detection_pvalue(soft, weights))),
             min(1.0, grids * tries * float(payload.detection_pvalue(soft))))
 
@@ -103,7 +105,7 @@ def null_pvalues(wm, dataset, views: int, size: int, seed: int, device, log) -> 
                 pictures = quantise(renderer(original, cameras, lights, size, size,
                                              random_backgrounds(count, generator).to(device)).image)
                 for name, images in variants(pictures, generator, attacks=False, scale=2.0).items():
-                    evidence = spread_evidence(model, original, images, cameras, grids=wm._grids_to_read(original))
+                    evidence = spread_evidence(model, original, images, cameras, grids=wm.method.grids_to_read(original))
                     for row in evidence.cpu():
                         _, exact, gaussian = pvalues(wm, row[None])
                         results.setdefault(name, []).append(exact)
@@ -133,14 +135,14 @@ def true_positives(wm, dataset, size: int, registered: int, seed: int, device, l
 
     def known(evidence: torch.Tensor) -> list:
         """Cell sums (1, C) read with the camera known, as a reading."""
-        return [_Reading(evidence[0].cpu(), (0.0, 0.0, 0.0), "given", None)]
+        return [Reading(evidence[0].cpu(), (0.0, 0.0, 0.0), "given", None)]
 
     for index in range(len(dataset)):
         original, batch = mesh_batches(dataset, index, device)
         asset = int(torch.randint(0, 2 ** 32, (1,), generator=generator))
         raw = payload.encode(payload.Message.id(asset), None, wm.n_bits).to(device)[None]
         with torch.no_grad():  # marked as `meshseal embed` marks it: the mesh's cell grid, on the texels it shows
-            texture = model.mark_texture(batch["texture"], raw, 1.0, key_seed, batch_mark_grid(model, batch),
+            texture = model.texture_encoder(batch["texture"], raw, 1.0, key_seed, batch_mark_grid(model.texture_encoder, batch),
                                          batch_texels_used(batch))
         marked = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces")), texture)
         views = 3 if index < registered else 1
@@ -151,7 +153,7 @@ def true_positives(wm, dataset, size: int, registered: int, seed: int, device, l
                                          random_backgrounds(views, generator).to(device)).image)
             for name, images in variants(pictures[:1], generator, attacks=True).items():
                 record(f"known camera, {name}", known(spread_evidence(model, original, images, cameras[[0]],
-                                                                      grids=wm._grids_to_read(original))), asset)
+                                                                      grids=wm.method.grids_to_read(original))), asset)
         if index >= registered:
             continue
         pooled = []

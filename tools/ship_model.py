@@ -17,9 +17,11 @@ from pathlib import Path
 
 import torch
 
+from meshseal.methods import method_for
 from meshseal.data.dataset import MeshDataset
-from meshseal.distortions import Distortions2D, Distortions3D
-from meshseal.evaluate import evaluate, evaluate_registered
+from meshseal.training.distortions import Distortions2D, Distortions3D
+from meshseal.evaluation.evaluate import evaluate_registered
+from meshseal.training.validate import evaluate
 from meshseal.models.io import load_model, read_metadata
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "src" / "meshseal" / "weights"
@@ -41,7 +43,8 @@ def main() -> int:
     metadata = read_metadata(source)
     model = load_model(source)
     dataset = MeshDataset(args.data, "test", seed=args.seed)
-    surface = model.config.decoder == "surface"  # blind, read from the seed paper's 600 x 400 pictures
+    method = method_for(model)
+    surface = method.paper_pictures  # blind, read from the seed paper's 600 x 400 pictures
     size = (400, 600) if surface else args.size
     size_text = "600 x 400 (the paper's)" if surface else f"{args.size}^2"
     rows = {}
@@ -49,7 +52,7 @@ def main() -> int:
                 ("any view, no attack", "any", None, None, 0.0, dataset),
                 ("seed views, 3D distortions", "seed", Distortions3D(1.0), None, 0.0, dataset),
                 ("seed views, 2D attacks (strength 0.5)", "seed", None, Distortions2D(0.5), 0.0, dataset)]
-    if model.informed:
+    if method.informed:
         settings.append((f"seed views, camera off by ~1 px ({args.size}^2)", "seed", None, None, 1.0, dataset))
     if surface:  # the paper's protocol first (`meshseal eval --protocol seed`), then real UV atlases
         seed_items = MeshDataset(args.data, "test", seed=args.seed, texture_kinds=("noise", "real"))
@@ -65,11 +68,11 @@ def main() -> int:
                                distortions_3d=d3, distortions_2d=d2, unrender_jitter=jitter)
         print(label, json.dumps(rows[label]), flush=True)
     registered, shipped = None, None
-    if model.informed and model.config.decoder == "matched":
+    if method.calibrated:
         torch.manual_seed(args.seed)  # the whole split as `meshseal embed` marks it, read with the camera known
         shipped = evaluate_registered(model, dataset, None, args.seed, args.size, "seed", views=args.views, register=False)
         print("as shipped", json.dumps(shipped), flush=True)
-    if model.informed and args.register_meshes > 0:
+    if method.informed and args.register_meshes > 0:
         torch.manual_seed(args.seed)
         registered = evaluate_registered(model, dataset, args.register_meshes, args.seed, args.size, "seed")
         print("registered", json.dumps(registered), flush=True)
@@ -80,45 +83,7 @@ def main() -> int:
     shutil.copyfile(source, target)
     config = json.loads(metadata["config"])
     train_config = json.loads(metadata.get("train_config", "{}"))
-    if config["decoder"] == "matched":
-        coarse, fine = config.get("coarse_chips", 0), config.get("fine_chips", 0)
-        others = ([f"{coarse}^2 on a mesh whose {config['chips']}^2 cells would be under {config['coarse_below']} px in a "
-                   "256^2 view (a minified texture)"] if coarse else []) + \
-                 ([f"{fine}^2 where they would be over {config['fine_above']} px (a magnified texture, resampled up when "
-                   "it has fewer texels)"] if fine else [])
-        coarse_text = f" ({'; '.join(others)}; detection reads both grids there)" if others else ""
-        architecture = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
-                        f"{coarse_text}, each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
-                        f"shaped by local texture activity (window {config['activity_window']}, floor "
-                        f"{config['activity_floor']}), laid on the texels the mesh shows and scaled to texture PSNR {config['texture_psnr']} dB over those at strength 1; "
-                        "read by a matched filter (the residual whitened in the picture) after un-rendering the picture onto the "
-                        "original mesh relit to match it "
-                        "(detection needs the original mesh and the picture's camera: from the PNG's metadata, or "
-                        "registered). Its soft bits are z-scores (given the picture, a Rademacher sum per bit without a mark: exact p-values, `payload.detection_pvalue`)")
-    elif config["decoder"] == "surface":
-        architecture = (f"keyed code along the object's x (`models/surface.py`): {config['chips']} cells across the object "
-                        "as the seed's cameras see it, each bit a scrambled Walsh-Hadamard code over them, laid in the "
-                        "texture through the surface point each texel paints, colour "
-                        f"`{config['mark_colour']}`, amplitude shaped by local texture activity (window "
-                        f"{config['activity_window']}, floor {config['activity_floor']}), texture PSNR "
-                        f"{config['texture_psnr']} dB over the texels the mesh paints at strength 1; read **blind**, from "
-                        "the picture alone: the object's column range, the chroma high-passed along rows, averaged per "
-                        "cell and correlated with the codes. It needs the seed paper's views (cameras at x = 0, z up): "
-                        "a view from the side shows the code edge-on")
-    elif config["decoder"] == "uv":
-        architecture = (f"informed decoder `uv` ({config['decoder_channels']} channels) reading the picture un-rendered "
-                        f"onto a {config['uv_grid']}^2 UV grid of the original mesh (detection needs the original mesh "
-                        "and the picture's camera: from the PNG's metadata, or registered)")
-    else:
-        architecture = (f"decoder `{config['decoder']}` ({config['decoder_channels']} channels, {config['decoder_blocks']} "
-                        f"blocks, stem stride {config['decoder_stem_stride']}), decoding on a {config['frame_size']}^2 "
-                        "object-centred frame")
-    if config["texture_encoder"] not in ("spread", "surface"):
-        mark = (f"fixed RMS {config['texture_rms']}" if config.get("texture_rms", 0) > 0
-                else f"residual bound {config['texture_strength']}")
-        architecture = (f"texture encoder `{config['texture_encoder']}` ({config['texture_channels']} channels, "
-                        f"blocks at 1/{config['texture_downsample']} resolution, periodic carrier {config['texture_tile']}, "
-                        f"{mark}); {architecture}")
+    architecture = method.describe()
     steps = int(metadata.get("steps") or 0)
     built = (f"(seed {metadata.get('seed')}, {steps} steps, {float(metadata.get('training_seconds', 0)) / 60:.1f} min on "
              "this repository's 2-core CPU machine)" if steps else
@@ -132,6 +97,8 @@ def main() -> int:
         "",
         f"- Payload: **{config['n_bits']} raw bits** ({payload}), strategy `{config['strategy']}`; file "
         f"`{target.name}` ({target.stat().st_size / 1e3:.1f} kB, safetensors).",
+        f"- Method: `{method.name}` (`meshseal.methods.{method.name}`); params: "
+        + ", ".join(f"{k} {v}" for k, v in method.params().items()) + ".",
         f"- Architecture: {architecture}.",
         f"- Built by: `meshseal train --config configs/{train_config.get('name', args.name)}.yaml --out {args.run}` "
         f"{built}.",
@@ -171,7 +138,7 @@ def main() -> int:
                   f"on faces without UV area) read **{palette['bit_acc_known_camera']:.4f}** (detected "
                   f"{palette['tpr_known_camera']:.3f}; object PSNR {palette['psnr_object']:.2f} dB, FLIP "
                   f"{palette['flip_object']:.4f}): such a face shows one texel wherever it is seen, so `meshseal embed` "
-                  "first gives those faces charts of their own (`mesh.charts`), filled with the colour they showed, "
+                  "first gives those faces charts of their own (`methods.charts`), filled with the colour they showed, "
                   "and the mark lies there as on any UV-mapped surface."]
     if registered is not None:
         pose = registered["pose_error_px"]

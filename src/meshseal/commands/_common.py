@@ -54,7 +54,7 @@ SAMPLERS = {"paper": "seed", "seed": "seed", "any": "any"}  # 'seed' (the seed p
 
 def sampler(text: str) -> str:
     """--sampler: 'paper' (the camera and light ranges of the seed paper, Yoo et al. 2022) or 'any' (all
-    around) -> the name `pipeline.sample_views` takes; 'seed' is accepted for 'paper' (argparse type)."""
+    around) -> the name `render.views.sample_views` takes; 'seed' is accepted for 'paper' (argparse type)."""
     if text not in SAMPLERS:
         raise argparse.ArgumentTypeError(f"expected 'paper' (the seed paper's camera range) or 'any', got '{text}'")
     return SAMPLERS[text]

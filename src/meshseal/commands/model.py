@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 from contextlib import closing
@@ -181,93 +180,6 @@ def _budget(text: str) -> float:
     return value
 
 
-def embed_report(original, marked, views: int) -> tuple[dict, tuple]:
-    """How much the mark changed the mesh: texture PSNR, normal angle, uv shift, and what a person sees
-    in renders (256^2, seed views): PSNR, SSIM and FLIP over the object's pixels, PSNR/SSIM over the
-    whole frame beside them (as the seed paper reports; the background inflates them). Also returns
-    the renders (original, marked) for a preview."""
-    import torch
-
-    from ..losses import normal_angle_deg, psnr, ssim
-    from ..metrics import render_pair, shown_texture_psnr, visibility
-    from ..models.spread import resampled_like, texels_used
-
-    texture_psnr, shown_psnr, shifts = [], [], []
-    for index, (before, after) in enumerate(zip(original.materials, marked.materials)):
-        if before.texture is not None and after.texture is not None:
-            after_texture, before_texture = after.texture.permute(2, 0, 1)[None], before.texture.permute(2, 0, 1)[None]
-            texture_psnr.append(float(psnr(after_texture, resampled_like(before_texture, after_texture))))
-            shown = texels_used(original.uvs, original.faces[original.face_material == index], *before_texture.shape[-2:]) \
-                if original.uvs is not None else None
-            if shown is not None and bool(shown.any()):
-                shown_psnr.append(float(shown_texture_psnr(after_texture, before_texture, shown[None, None])[0]))
-    if original.uvs is not None and marked.uvs is not None:
-        sizes = torch.tensor([max(m.texture.shape[:2]) if m.texture is not None else 0 for m in original.materials],
-                             dtype=torch.float32)
-        per_vertex = torch.zeros(original.n_vertices)
-        per_vertex[original.faces.reshape(-1)] = sizes[original.face_material].repeat_interleave(3)
-        shifts.append(float(((marked.uvs - original.uvs).norm(dim=-1) * per_vertex).mean()))
-    report = {
-        "psnr_texture": round(sum(texture_psnr) / len(texture_psnr), 3) if texture_psnr else None,
-        "psnr_texture_shown": round(sum(shown_psnr) / len(shown_psnr), 3) if shown_psnr else None,
-        "normal_angle_deg": round(float(normal_angle_deg(marked.normals, original.normals)), 4),
-        "uv_shift_texels": round(shifts[0], 4) if shifts else 0.0,
-        "views": views,
-    }
-    if views == 0:  # no renders: the file figures only
-        return report, None
-    render_a, render_b, inside = render_pair(original, marked, views)
-    seen = visibility(render_a, render_b, inside)
-    measured = lambda value, digits: None if math.isnan(value) else round(value, digits)  # noqa: E731 (NaN: not seen)
-    report |= {
-        "psnr_object": measured(seen["psnr_object"], 3),
-        "ssim_object": measured(seen["ssim_object"], 5),
-        "flip_object": measured(seen["flip_object"], 4),
-        "psnr_frame": round(float(psnr(render_b, render_a).mean()), 3),
-        "ssim_frame": round(float(ssim(render_b, render_a).mean()), 5),
-    }
-    return report, (render_a[0], render_b[0])
-
-
-def write_preview(path: Path, original, marked, renders) -> None:
-    """A sheet a person can judge, written atomically as PNG: columns original | marked | difference x4
-    (grey is no change), labelled; one row per textured material (its name and size above it) and one
-    render."""
-    import torch
-    from PIL import Image, ImageDraw, ImageFont
-
-    from ..mesh.io import atomic_write, image_bytes
-    from ..models.spread import resampled_like
-
-    width, band, gap = 256, 18, 6
-    rows = [(f"texture '{b.name}' ({b.texture.shape[1]}x{b.texture.shape[0]})",
-             resampled_like(a.texture.permute(2, 0, 1), b.texture.permute(2, 0, 1)), b.texture.permute(2, 0, 1))
-            for a, b in zip(original.materials, marked.materials) if a.texture is not None and b.texture is not None]
-    rows.append(("render (256x256)", *renders))
-    tiles = []
-    for _, before, after in rows:
-        rows_of, cols_of = before.shape[-2:]  # fitted into the square, its aspect kept (a charted texture is tall)
-        fit = width / max(rows_of, cols_of)
-        size = (max(1, round(rows_of * fit)), max(1, round(cols_of * fit)))
-        before, after = (torch.nn.functional.interpolate(x[None].float(), size=size, mode="area")[0]
-                         for x in (before, after))
-        row = [before, after, (0.5 + 4.0 * (after - before)).clamp(0, 1)]
-        row = torch.cat([torch.nn.functional.pad(tile, (0, width - size[1], 0, width - size[0]), value=0.5)
-                         for tile in row], dim=2)
-        tiles.append((row.clamp(0, 1) * 255).round().byte().permute(1, 2, 0).numpy())
-    sheet = Image.new("RGB", (3 * width + 2 * gap, band + len(rows) * (band + width)), (255, 255, 255))
-    draw = ImageDraw.Draw(sheet)
-    font = ImageFont.load_default(size=13)
-    for column, label in enumerate(("original", "marked", "difference x4")):
-        draw.text((column * (width + gap) + 4, 2), label, fill=(0, 0, 0), font=font)
-    for index, ((label, _, _), tile) in enumerate(zip(rows, tiles)):
-        top = band + index * (band + width)
-        draw.text((4, top + 2), label, fill=(60, 60, 60), font=font)
-        for column in range(3):
-            sheet.paste(Image.fromarray(tile[:, column * width:(column + 1) * width]), (column * (width + gap), top + band))
-    atomic_write(path, image_bytes(sheet))
-
-
 def run_embed(args) -> int:
     if args.message is not None and not args.message.strip():
         raise MeshsealError("--message is empty (or only spaces): give the text to hide (the default model holds 4 bytes), "
@@ -276,7 +188,7 @@ def run_embed(args) -> int:
     stage = Stages()
     stage(f"loading the model and {args.input.name}")
     from ..api import load
-    from ..metrics import MAX_FLIP
+    from ..evaluation.metrics import MAX_FLIP
     from ..mesh import load as load_mesh, save
     from ..mesh.io import check_output
 
@@ -297,7 +209,7 @@ def run_embed(args) -> int:
         raise MeshsealError("--max-flip measures the mark in renders: give --views 1 or more, or --max-flip 0")
     default_budget = args.strength is None and args.views > 0
     max_flip = args.max_flip if args.max_flip is not None else (MAX_FLIP if default_budget else 0.0)
-    budget = max_flip > 0 and watermarker.calibrated
+    budget = max_flip > 0 and watermarker.method.flip_budget
     stage(f"marking the texture{'s' if sum(m.texture is not None for m in base.materials) > 1 else ''}"
           + (f" and keeping the mark's FLIP within {max_flip} ({args.views} renders)" if budget else ""))
     if budget:
@@ -307,7 +219,9 @@ def run_embed(args) -> int:
         marked, strength = watermarker.embed(base, **message, key=key, strength=asked), asked
     stage(f"writing {args.output}")
     written = save(marked, args.output)
-    stage(f"measuring what the mark changed" + (f" ({args.views} renders)" if args.views else ""))
+    stage("measuring what the mark changed" + (f" ({args.views} renders)" if args.views else ""))
+    from ..evaluation.reports import embed_report, write_preview
+
     report, renders = embed_report(base, marked, args.views)
     report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": round(strength, 4),
                "strength_asked": asked, "max_flip": max_flip if budget else None,
@@ -408,17 +322,16 @@ def run_detect(args) -> int:
         progress = tqdm(total=len(pictures), unit="picture", file=sys.stderr)
     workers = args.workers or (min(available_cores(), 8) if len(pictures) >= MANY_PICTURES else 1)
     with closing(_readings(args, watermarker, original, pictures, min(workers, len(pictures)))) as read:
-        for path, reading, error in read:  # closing: the worker pool ends even if a line fails
-            failed += _report(args, watermarker, original, path, reading, error, progress, key, expect, readings,
+        for path, outcome, error in read:  # closing: the worker pool ends even if a line fails
+            failed += _report(args, watermarker, original, path, outcome, error, progress, key, expect, readings,
                               decisions)
     if progress is not None:
         progress.close()
     if args.pool and readings:
-        result = watermarker.decide(readings, key, expect)
-        result.reason = watermarker.why_not(result, original, key)
+        result = watermarker.decision(readings, original, key, expect)
         decisions.append(result)
         print(json.dumps(result.to_dict()) if args.json else f"{len(readings)} pictures pooled: {_describe(result, expect)}")
-    if (not failed and key is None and decisions and watermarker.calibrated
+    if (not failed and key is None and decisions and watermarker.method.calibrated
             and not any(r.detected or r.reason or r.message is not None for r in decisions)):
         print("meshseal: note: read under the public key (no --key, no $MESHSEAL_KEY): a mark made under a "
               "secret key reads as no mark", file=sys.stderr)
@@ -434,9 +347,9 @@ def detect_status(failed: int, decisions: list) -> int:
     return 1 if decided and not any(decided) else 0
 
 
-def _report(args, watermarker, original, path, reading, error, progress, key, expect, readings, decisions) -> int:
+def _report(args, watermarker, original, path, outcome, error, progress, key, expect, readings, decisions) -> int:
     """Print one picture's line (or keep its reading for the pool; its Detection goes to `decisions`);
-    1 if it could not be read."""
+    1 if it could not be read. `outcome`: the picture's Detection, or with --pool its reading."""
     if error is not None:
         (progress.write if progress else lambda line: print(line, file=sys.stderr))(f"meshseal: error: {error}")
         if args.json:
@@ -446,12 +359,10 @@ def _report(args, watermarker, original, path, reading, error, progress, key, ex
     if error is not None:
         return 1
     if args.pool:
-        readings.append(reading)
+        readings.append(outcome)
         return 0
-    result = watermarker.decide([reading], key, expect)
-    result.reason = watermarker.why_not(result, original, key, reading)
-    decisions.append(result)
-    line = json.dumps({"image": str(path)} | result.to_dict()) if args.json else f"{path}: {_describe(result, expect)}"
+    decisions.append(outcome)
+    line = json.dumps({"image": str(path)} | outcome.to_dict()) if args.json else f"{path}: {_describe(outcome, expect)}"
     if progress is not None and not args.json:
         progress.write(line)
     else:
@@ -460,11 +371,11 @@ def _report(args, watermarker, original, path, reading, error, progress, key, ex
 
 
 def _readings(args, watermarker, original, paths: list[Path], workers: int):
-    """(path, reading, error text) of each picture, in order. With more than one worker, spawned
-    processes (one thread each) load the model and the original once and read the pictures in
-    parallel; the decisions stay with the caller."""
+    """(path, Detection (with --pool: its reading), error text) of each picture, in order. With more
+    than one worker, spawned processes (one thread each) load the model and the original once and
+    detect in parallel; a pool's decision stays with the caller."""
     key, expect = _key(args), args.expect if args.expect_id is None else args.expect_id
-    task = (args.register, args.fov, key, expect, not args.pool)
+    task = (args.register, args.fov, key, expect, args.pool)
     if workers <= 1:
         yield from (_read_one(watermarker, original, path, *task) for path in paths)
         return
@@ -491,12 +402,14 @@ def _readings(args, watermarker, original, paths: list[Path], workers: int):
         pool.join()
 
 
-def _read_one(watermarker, original, path, register: bool, fov: float, key, expect, search: bool):
-    """A picture's reading, looked at again under the registration's next-best views where its mark is
-    not found (`Watermarker.look_again`; not when pooling)."""
+def _read_one(watermarker, original, path, register: bool, fov: float, key, expect, pool: bool):
+    """A picture's Detection, as `Watermarker.detect` reads and decides it; with `pool`, its reading
+    alone (the pool's evidence is added and decided once, `Watermarker.decision`)."""
     try:
-        reading = watermarker.read(path, original, register=register, fov_y=fov)
-        return path, watermarker.look_again(reading, original, key, expect, search), None
+        if pool:  # settled: no second look (a pool decides once), nothing but evidence to send back
+            reading = watermarker.read(path, original, register=register, fov_y=fov)
+            return path, watermarker.look_again(reading, original, search=False), None
+        return path, watermarker.detect(path, original, key=key, expect=expect, register=register, fov_y=fov), None
     except MeshsealError as error:
         return path, None, str(error)
 
@@ -521,9 +434,10 @@ def _worker_read(task):
 def run_eval(args) -> int:
     from ..api import load
     from ..data.dataset import MeshDataset
-    from ..distortions import Distortions2D, Distortions3D
-    from ..evaluate import evaluate, evaluate_registered
-    from ..metrics import MAX_FLIP
+    from ..training.distortions import Distortions2D, Distortions3D
+    from ..evaluation.evaluate import evaluate_registered
+    from ..training.validate import evaluate
+    from ..evaluation.metrics import MAX_FLIP
 
     watermarker = load(args.model)
     if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
@@ -535,7 +449,7 @@ def run_eval(args) -> int:
                                 "and --texture-kinds own")
         kinds = kinds or ["noise", "real"]
     args.sampler = args.sampler or "seed"
-    paper_size = (args.protocol == "seed" or watermarker.model.config.decoder == "surface") and not args.register
+    paper_size = (args.protocol == "seed" or watermarker.method.paper_pictures) and not args.register
     size = args.size or ((400, 600) if paper_size else 128)  # blind surface models read the paper's pictures
     dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
     if len(dataset) == 0:
@@ -543,7 +457,7 @@ def run_eval(args) -> int:
         raise MeshsealError(f"{args.data}: the {args.split} split has no items{kinds_note}")
     attacks = None
     if args.attacks is not None:
-        from ..attacks import GEOMETRIC, parse
+        from ..evaluation.attacks import GEOMETRIC, parse
 
         try:
             attacks = parse(args.attacks)
@@ -605,7 +519,7 @@ def _train_device(name: str) -> str:
 
 
 def run_train(args) -> int:
-    from ..train import TrainConfig, Trainer
+    from ..training.train import TrainConfig, Trainer
 
     config = TrainConfig.load(args.config)
     if args.data is not None:
@@ -628,7 +542,7 @@ def run_train(args) -> int:
 def run_finetune(args) -> int:
     from ..api import load
     from ..data.dataset import MeshDataset
-    from ..finetune import FinetuneConfig, finetune
+    from ..training.finetune import FinetuneConfig, finetune
 
     watermarker = load(args.model)
     if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import io
-import json
 import os
 import re
 import stat
@@ -277,7 +276,7 @@ def _tensor_to_image(texture: torch.Tensor, like) -> Image.Image:
     image = Image.fromarray(array, "RGB")
     if isinstance(like, Image.Image) and like.mode in ("RGBA", "LA"):
         alpha = like.getchannel("A")
-        if like.size != image.size:  # charted (`mesh.charts`): the old texels top left, the charts opaque
+        if like.size != image.size:  # charted (`methods.charts`): the old texels top left, the charts opaque
             grown = Image.new("L", image.size, 255)
             grown.paste(alpha, (0, 0))
             alpha = grown
@@ -289,7 +288,7 @@ def _write_back(mesh: Mesh) -> object:
     """A copy of the source scene with the mesh's attributes written into its geometries."""
     source: Source = mesh.source
     scene = copy.deepcopy(source.scene)
-    # Charts (`mesh.charts`) add vertices, copies of others: those parts are rebuilt, the rest keep theirs.
+    # Charts (`methods.charts`) add vertices, copies of others: those parts are rebuilt, the rest keep theirs.
     positions_changed = (mesh.positions.shape == source.original_positions.shape
                          and not torch.equal(mesh.positions.detach().cpu(), source.original_positions))
     done: set[str] = set()
@@ -325,7 +324,7 @@ def _write_back(mesh: Mesh) -> object:
 
 
 def _rebuilt(geometry, mesh: Mesh, part):
-    """A part's geometry with the mesh's vertices and faces for it (`mesh.charts` added vertices),
+    """A part's geometry with the mesh's vertices and faces for it (`methods.charts` added vertices),
     its material kept; positions, normals and UVs are written as for any part."""
     import trimesh
 
@@ -657,45 +656,3 @@ def _to_trimesh(mesh: Mesh):
         visual = trimesh.visual.TextureVisuals(uv=mesh.uvs.detach().cpu().numpy(), material=material)
     return trimesh.Trimesh(vertices=mesh.positions.detach().cpu().numpy(), faces=mesh.faces.cpu().numpy(),
                            vertex_normals=mesh.normals.detach().cpu().numpy(), visual=visual, process=False)
-
-
-CAMERA_KEY = "meshseal:camera"
-
-
-def image_bytes(image: Image.Image, fmt: str = "PNG", camera=None, quality: int = 90) -> bytes:
-    """Encode an image; a PNG may carry the camera that rendered it (one `Cameras` element, in the
-    canonical frame) as a text chunk, which informed detection uses instead of registering."""
-    buffer = io.BytesIO()
-    options = {"quality": quality} if fmt == "JPEG" else {}
-    if camera is not None and fmt == "PNG":
-        from PIL.PngImagePlugin import PngInfo
-
-        info = PngInfo()
-        info.add_text(CAMERA_KEY, json.dumps(camera_to_dict(camera)))
-        options["pnginfo"] = info
-    image.save(buffer, format=fmt, **options)
-    return buffer.getvalue()
-
-
-def camera_to_dict(camera) -> dict:
-    return {"eye": camera.eye[0].tolist(), "at": camera.at[0].tolist(), "up": camera.up[0].tolist(),
-            "fov_y": camera.fov_y, "principal": list(camera.principal), "frame": "canonical"}
-
-
-def camera_from_dict(values: dict):
-    """The inverse of `camera_to_dict`; raises MeshError on anything malformed."""
-    import math
-
-    from ..render.cameras import Cameras
-
-    try:
-        eye, at, up = (torch.tensor([[float(v) for v in values[key]]]) for key in ("eye", "at", "up"))
-        fov = float(values["fov_y"])
-        principal = tuple(float(v) for v in values.get("principal", (0.0, 0.0)))
-        if eye.shape != (1, 3) or at.shape != (1, 3) or up.shape != (1, 3) or len(principal) != 2:
-            raise ValueError("bad shape")
-        if not (0.0 < fov < 180.0) or not all(math.isfinite(v) for v in eye.tolist()[0] + at.tolist()[0] + up.tolist()[0]):
-            raise ValueError("bad values")
-    except (KeyError, TypeError, ValueError) as error:
-        raise MeshError(f"malformed camera metadata ({error})") from None
-    return Cameras(eye, at, up, fov, principal=principal)

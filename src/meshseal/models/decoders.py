@@ -77,7 +77,7 @@ class ResidualCNNDecoder(nn.Module):
 
 
 class UVDecoder(nn.Module):
-    """Informed decoder: reads an un-rendered UV map (see pipeline.uv_maps), not a picture.
+    """Informed decoder: reads an un-rendered UV map (see reading.relight.uv_maps), not a picture.
 
     Input (B, 10, G, G): per UV cell, what the original texture under a fitted light leaves
     unexplained in the picture (3), the picture (3), the original albedo (3) and the coverage (1). The

@@ -18,7 +18,7 @@ cell centres:
   ones; the whole residual is then scaled to a target texture PSNR (the strength knob).
 
 Detection has the original mesh and the picture's camera. The original is relit to match the picture
-(`pipeline.relit_residual`) and sampled as the picture sampled it (`pipeline.picture_footprint`: point
+(`reading.relight.relit_residual`) and sampled as the picture sampled it (`reading.footprint.picture_footprint`: point
 samples, or each pixel's area, blurred), each pixel's own brightness against that prediction is fitted
 and taken off along the predicted colour (shadows, sheets lit from behind, tone curves), the residual at
 every covered pixel is projected onto the mark's colour, whitened in the picture (`whiten`: slow
@@ -212,7 +212,7 @@ def _resized(texture: torch.Tensor, size) -> torch.Tensor:
 def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float) -> torch.Tensor:
     """Gaussian mean (sigma px) of values (P,) or (P, C) at covered pixels, over the covered pixels
     only (the background does not bleed in). pixel (P,): flat indices into the (B, H, W) `shape`."""
-    from ..distortions import blur_radius, gaussian_blur
+    from ..imaging import blur_radius, gaussian_blur
 
     flat = values[:, None] if values.dim() == 1 else values
     channels = flat.shape[1]
@@ -299,7 +299,7 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
     null of an unmarked texture (`payload.detection_pvalue`), so a texture that reads as marked under
     a key carries that key's mark. Used to tell a user that the mesh given as the original is itself
     marked."""
-    from ..distortions import gaussian_blur
+    from ..imaging import gaussian_blur
 
     height, width = texture.shape[-2:]
     projected = (texture.float() * encoder.colour.to(texture.device).view(1, 3, 1, 1)).sum(1, keepdim=True)

@@ -55,6 +55,12 @@ class ModelConfig:
     frame_size: int = 128
     uv_grid: int = 64  # informed decoder: cells per side of the un-rendered UV map
 
+    @property
+    def method(self) -> str:
+        """The watermarking scheme this config builds (`methods.method_for`): 'spread' (matched
+        decoder), 'surface' (surface decoder) or 'learned' (the paper's networks)."""
+        return {"matched": "spread", "surface": "surface"}.get(self.decoder, "learned")
+
     @classmethod
     def from_dict(cls, values: dict) -> "ModelConfig":
         known = {f.name for f in fields(cls)}
@@ -135,46 +141,15 @@ class WatermarkModel(nn.Module):
         """Where the model lives (a spread-spectrum model has buffers but no parameters)."""
         return next(iter([*self.parameters(), *self.buffers()])).device
 
-    def embed(self, positions, normals, uvs, texture, message, vertex_mask=None, used=None, columns=None):
-        """Watermark a batch: returns (normals, uvs, texture), each unchanged where its encoder is off.
-        `used` (B, 1, H, W): the texels each mesh shows, where a spread mark lies (`texels_used`);
-        `columns`: (columns, painted) (B, H, W) each, where a surface mark lies (`surface.texel_columns`)."""
+    def embed(self, positions, normals, uvs, texture, message, vertex_mask=None):
+        """The learned encoders on a batch: (normals, uvs, texture), each unchanged where its encoder is
+        off. Keyed marks (spread, surface) mark through their `methods.Method` instead."""
         if self.vertex_encoder is not None:
             normals, uvs = self.vertex_encoder(positions, normals, uvs, message, vertex_mask)
-        if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
-            texture = self.texture_encoder(texture, message, used=used)
-        elif isinstance(self.texture_encoder, SurfaceCodeEncoder):
-            texture = self.texture_encoder(texture, message, *columns)
-        elif self.texture_encoder is not None:
+        if self.texture_encoder is not None:
             texture = self.texture_encoder(texture, message)
         return normals, uvs, texture
 
-    def mark_texture(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
-                     key_seed: int | None = None, chips: int | None = None,
-                     used: torch.Tensor | None = None, columns=None) -> torch.Tensor:
-        """One texture (B, 3, H, W) marked with `message` (B, N); `strength` scales a spread or
-        surface mark, `key_seed` picks a spread mark's keyed pattern, `chips` its cell grid (the
-        mesh's: `mark_grid`) and `used` the texels it lies on (the mesh's: `models.spread.texels_used`);
-        `columns` (columns, painted) (B, H, W) where a surface mark lies (`models.surface.texel_columns`)."""
-        if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
-            return self.texture_encoder(texture, message, strength, key_seed, chips, used)
-        if isinstance(self.texture_encoder, SurfaceCodeEncoder):
-            return self.texture_encoder(texture, message, *columns, strength=strength)
-        if strength != 1.0:
-            raise ValueError("only spread-spectrum and surface models take a strength (learned marks have a trained power)")
-        return self.texture_encoder(texture, message)
-
-    def mark_grid(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> int | None:
-        """The cell grid a spread mark uses on a mesh (its textured faces); None for learned marks."""
-        if isinstance(self.texture_encoder, SpreadSpectrumEncoder):
-            return self.texture_encoder.grid_for(positions, faces, uvs)
-        return None
-
-    @property
-    def informed(self) -> bool:
-        """True when detection needs the original mesh (the decoder reads un-rendered UV maps)."""
-        return self.config.decoder in ("uv", "matched")
-
     def decode(self, image: torch.Tensor) -> torch.Tensor:
         """Framed pictures (B, 3, S, S) in [0, 1] (or, informed, UV maps (B, 10, G, G)) -> logits (B, N)."""
-        return self.decoder(image if self.informed else image * 2.0 - 1.0)
+        return self.decoder(image if isinstance(self.decoder, UVDecoder) else image * 2.0 - 1.0)

@@ -27,8 +27,8 @@ import torch
 import torch.nn.functional as F
 
 from ..data.dataset import collate, vertex_mask
-from ..framing import BOX_MARGIN
 from ..mesh.core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, DEFAULT_SHININESS
+from ..reading.framing import BOX_MARGIN
 from ..render import interpolate, rasterize, scatter_to_image
 from ..render.shader import PhongShader
 
@@ -158,7 +158,7 @@ def bake(dataset, views: int, size: int, sampler: str = "seed", seed: int = 0, d
          batch_size: int = 16, progress=None, surface: bool = False) -> GBuffers:
     """`views` framed views of every item of `dataset` (cameras and lights from `sampler`'s ranges),
     drawn from `seed` alone; `surface`: with what a vertex mark needs (`Surface`)."""
-    from ..pipeline import sample_views
+    from ..render.views import sample_views
 
     generator = torch.Generator().manual_seed(seed)
     parts = []

@@ -11,7 +11,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-
 BOX_MARGIN = 0.08  # each side of a framed box leaves this fraction of the object's extent around it
 
 
@@ -110,7 +109,7 @@ def object_mask(image: np.ndarray, threshold: float = 0.03, trim: bool = True) -
     by keeping the largest connected components that together hold 99 % of the area, then trimmed to
     the pixels the object covers at least half (`half_covered`), as a renderer's hard raster marks
     them: the antialiased rim that any difference picks up made silhouettes half a pixel too wide, which
-    registration then matched (experiments/registration_conditions.py, docs/invisibility.md). `trim`
+    registration then matched (experiments/registration_conditions.py, docs/reading.md). `trim`
     False skips that last step (a reader that only counts the object's pixels).
     """
     from scipy import ndimage
@@ -181,3 +180,9 @@ def half_covered(difference: np.ndarray, mask: np.ndarray, sigma: float = 1.5, m
     trimmed = mask.copy()
     trimmed[judged] = coverage[judged] >= 0.5
     return trimmed
+
+
+def frame(image: torch.Tensor, alpha: torch.Tensor, size: int, background: torch.Tensor) -> torch.Tensor:
+    """Crop the object's bounding box (from the coverage) into a square size x size picture."""
+    boxes = boxes_from_mask(alpha.detach().cpu() > 0.5)
+    return crop_boxes(image, boxes, size, background.to(image))

@@ -24,15 +24,16 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from .data.dataset import collate
+from ..data.dataset import collate
+from ..errors import MeshsealError
+from ..models import ModelConfig, WatermarkModel
+from ..models.io import save_model, save_tensors
+from ..render import MeshRenderer
 from .distortions import Distortions2D, Distortions3D
-from .errors import MeshsealError
+from .distributed import average, average_gradients
 from .losses import bit_accuracy, masked_l1, message_loss, psnr, ssim
-from .models import ModelConfig, WatermarkModel
-from .models.io import save_model, save_tensors
-from .pipeline import random_backgrounds, run_pass
-from .render import MeshRenderer
-from .training.distributed import average, average_gradients
+from .step import run_pass
+from .views import random_backgrounds
 
 FREEZABLE = ("texture_encoder", "vertex_encoder", "decoder")
 
@@ -208,9 +209,8 @@ class CachedItems:
 
 class Trainer:
     def __init__(self, config: TrainConfig, out_dir, resume: bool = False, device: str = "cpu", log=print):
-        from .data.dataset import MeshDataset
-
-        from .training.distributed import join
+        from ..data.dataset import MeshDataset
+        from .distributed import join
 
         self.world, device = join(device)
         self.config, self.out, self.device = config, Path(out_dir), torch.device(device)
@@ -231,7 +231,10 @@ class Trainer:
         self.model = WatermarkModel(config.model).to(self.device)
         if self.device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # fixed picture sizes: cuDNN may time its convolution algorithms once
-        if self.model.informed and config.train.pretrain_steps > 0:
+        from ..methods import method_for
+
+        self.method = method_for(self.model)
+        if self.method.informed and config.train.pretrain_steps > 0:
             raise MeshsealError("pretrain_steps must be 0 for an informed (uv) decoder: its input is a UV map, "
                                 "not a picture")
         if config.train.init_from:
@@ -266,7 +269,7 @@ class Trainer:
         mode, model = self.config.train.gbuffer, self.model
         if mode not in ("auto", "on", "off"):
             raise MeshsealError(f"gbuffer: '{mode}' is not one of auto | on | off")
-        applies = (model.texture_encoder is not None or model.vertex_encoder is not None) and not model.informed \
+        applies = (model.texture_encoder is not None or model.vertex_encoder is not None) and not self.method.informed \
             and model.decoder is not None
         if mode == "on" and not applies:
             raise MeshsealError("gbuffer: on needs learned encoders and a blind decoder")
@@ -275,7 +278,7 @@ class Trainer:
     def _check_distributed(self) -> None:
         """Several processes: the G-buffer path (every process draws the same numbers for the whole
         batch), an even split of the batch, batch normalisation over the global batch."""
-        from .training.distributed import global_batch_norm
+        from .distributed import global_batch_norm
 
         cfg, world = self.config.train, self.world
         if self.views is None or cfg.pretrain_steps > 0:
@@ -289,7 +292,7 @@ class Trainer:
         """The train and test views, baked once into `<data>/gbuffers/` and kept on the training device,
         with the items' textures (uint8) beside them and, for a vertex mark, their geometry. A vertex
         mark's views are baked without the 3D rotation (a rotation would turn the marked normals too)."""
-        from .training.gbuffer import bake_key, cached_bake
+        from .gbuffer import bake_key, cached_bake
 
         cfg = self.config.train
         folder = Path(self.config.data) / "gbuffers"
@@ -314,7 +317,7 @@ class Trainer:
                 "train_textures": as_bytes(self.train_set, len(self.train_set)).to(self.device),
                 "test_textures": as_bytes(self.val_set, val_views).to(self.device), "textures_epoch": 0}
         if surface:
-            from .training.gbuffer import _geometry
+            from .gbuffer import _geometry
 
             for split, dataset, count in (("train", self.train_set, len(self.train_set)), ("test", self.val_set, val_views)):
                 bank[f"{split}_geometry"] = collate([_geometry(dataset, i) for i in range(count)], self.device)
@@ -350,8 +353,8 @@ class Trainer:
     def _gbuffer_pass(self, views, split: str, message, background, attack=None) -> dict:
         """Marked and original pictures of the baked `views` of `split`'s items, the decoder's logits,
         and what the encoders changed (texture; normals and uvs with the vertex mask, for a vertex mark)."""
-        from .data.dataset import vertex_mask
-        from .training.gbuffer import composite, composite_surface
+        from ..data.dataset import vertex_mask
+        from .gbuffer import composite, composite_surface
 
         bank = self.views
         texture = bank[f"{split}_textures"][views.item].float() / 255.0
@@ -448,7 +451,7 @@ class Trainer:
 
     def _start_from(self, path: Path) -> None:
         """Weights of another run (the paper's Table 8: a texture encoder trained on images alone)."""
-        from .models.io import load_model
+        from ..models.io import load_model
 
         source = load_model(path)
         if source.config != self.model.config:
@@ -626,7 +629,7 @@ class Trainer:
     def fit(self) -> dict:
         from tqdm import tqdm
 
-        from .evaluate import evaluate
+        from .validate import evaluate
 
         cfg = self.config.train
         if self.optimizer is None:  # nothing to learn: the model is its config and seeded pattern

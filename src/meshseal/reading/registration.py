@@ -19,9 +19,15 @@ from dataclasses import dataclass, replace
 import torch
 import torch.nn.functional as F
 
+from ..render import (
+    Cameras,
+    MeshBatch,
+    MeshRenderer,
+    fibonacci_directions,
+    pixels_at,
+    relight_fragments,
+)
 from .framing import boxes_from_mask, crop_boxes
-from .render import (Cameras, MeshBatch, MeshRenderer, fibonacci_directions, pixels_at,
-                     relight_fragments)
 
 SEARCH_SIZE = 128  # render size of the candidate views and of the refinement
 COMPARE_SIZE = 64  # framed size at which candidates are scored
@@ -60,7 +66,7 @@ class Registration:
     centre); box: the object's square box (cx, cy, half) in the picture's pixels; iou: overlap of the
     registered silhouette with the picture's. alternatives: the next-best distinct views (up to
     ALTERNATIVES, best first, each an `Alternative`): a near-symmetric shape's twin views fit
-    silhouette and texture alike, and only the mark can tell them apart (`Watermarker.look_again`)."""
+    silhouette and texture alike, and only the mark can tell them apart (`reading.second_look`)."""
 
     camera: Cameras
     box: torch.Tensor
@@ -122,8 +128,8 @@ def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 
     picture's edge cuts the object off at the low / high side), in this picture's pixels: the object
     seen only in part. Its uncut sides are matched: the scale from an axis cut on neither side, the
     position from the uncut side of each axis, so that the rest of the object lies past the edge."""
+    from ..render import clip_to_screen
     from .framing import BOX_MARGIN
-    from .render import clip_to_screen
 
     focal = size / 2 / math.tan(math.radians(cameras.fov_y) / 2)
     used = mesh.positions[0].index_select(0, mesh.faces.unique())
@@ -213,7 +219,7 @@ def _clip(mesh: MeshBatch, cameras: Cameras, height: int, width: int) -> torch.T
 def _rasterized(mesh: MeshBatch, cameras: Cameras, height: int, width: int):
     """Fragments and hard coverage (B, H, W) of each camera's view: what the silhouette stages need,
     without shading."""
-    from .render.rasterizer import rasterize
+    from ..render.rasterizer import rasterize
 
     fragments = rasterize(_clip(mesh, cameras, height, width), mesh.faces, height, width)
     return fragments, (fragments.pix_to_face >= 0).to(mesh.positions.dtype)
@@ -221,7 +227,7 @@ def _rasterized(mesh: MeshBatch, cameras: Cameras, height: int, width: int):
 
 def _overlaps(mesh: MeshBatch, cameras: Cameras, level) -> torch.Tensor:
     """Silhouette IoU (B,) of cameras against the picture (coverage only)."""
-    from .render.rasterizer import visible_faces
+    from ..render.rasterizer import visible_faces
 
     size = level[1].shape[-1]
     with torch.no_grad():
@@ -316,7 +322,7 @@ def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
     """Hard coverage (B, 1, S, S) of each camera's size x size picture and a world point (B, S*S, 3)
     at every pixel: the visible surface on the object, and on the background the pixel's ray at the
     object's mean depth (the silhouette stage's flow is needed just outside the silhouette too)."""
-    from .render import surface_points
+    from ..render import surface_points
 
     n_batch = len(cameras)
     fragments, cover = _rasterized(mesh, cameras, size, size)
@@ -345,7 +351,7 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
     blurred silhouette's gradient times each pose coordinate's screen flow (as `_flow_jacobian`), so an
     iteration costs one hard render and no backward pass; a camera whose step does not lower its cost
     keeps its pose and damps harder (Levenberg-Marquardt)."""
-    from .distortions import gaussian_blur
+    from ..imaging import gaussian_blur
 
     _, target_mask, inside = level
     size = target_mask.shape[-1]
@@ -410,7 +416,7 @@ def pose_error(mesh: MeshBatch, truth: Cameras, found: Cameras, height: int, wid
     """Mean distance in pixels between where the `truth` camera and the `found` one put the surface
     points that a height x width picture from `truth` shows (the registration's error as the
     un-rendering feels it)."""
-    from .render import clip_to_screen, surface_at_pixels, surface_points
+    from ..render import clip_to_screen, surface_at_pixels, surface_points
 
     with torch.no_grad():
         fragments, _, _ = surface_at_pixels(mesh, truth, height, width)
@@ -430,7 +436,7 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     match it, over interior pixels at least `margin` pixels from any silhouette (so that moves of a
     pixel or two never bring background in). Both are band-passed around each of `sigmas` in turn
     (coarse to fine: wider basins first); the light is refitted before each level (on the pixels
-    `light_from` says, see `pipeline.relit_residual`), and a level blurred
+    `light_from` says, see `reading.relight.relit_residual`), and a level blurred
     by sigma > TEXTURE_SCALE_SIGMA pixels runs on a copy shrunk so that its blur is that many pixels
     (4x fewer pixels to render at sigma 4, as accurate). The Jacobian is the band-passed picture's
     gradient times the analytic screen flow of each pose coordinate (`_flow_jacobian`, one render per
@@ -454,11 +460,11 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
 
 def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, margin: int,
                 light_from: str = "all"):
-    """The original relit to match `picture` (1, 3, H, W) from `camera` (`pipeline.relit_residual`),
+    """The original relit to match `picture` (1, 3, H, W) from `camera` (`reading.relight.relit_residual`),
     its hard render there (1, 3, H, W) and the interior pixels (1, H, W): on the object in both and at
     least `margin` pixels from any silhouette, so that moves of a pixel or two never bring background
     in. None when fewer than 64 interior pixels are left."""
-    from .pipeline import relit_residual
+    from .relight import relit_residual
 
     height, width = picture.shape[-2:]
     fit = relit_residual(mesh, picture, camera, light_from)
@@ -475,7 +481,7 @@ def _band_pass(inside: torch.Tensor, sigma: float):
     only (normalised blurs, so the silhouette's edge leaks nothing in). The blurs run on the box around
     the inside pixels that the wider one reaches (the rest of the frame, zero, is the same as the whole
     frame would give there), and the blurred weights once."""
-    from .distortions import blur_radius, gaussian_blur
+    from ..imaging import blur_radius, gaussian_blur
 
     wide = LOWPASS * max(sigma, 1.0)
     reach = blur_radius(wide)
@@ -572,7 +578,7 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
     renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
     most SHARPEN_RENDERS renders of the object's own window (at most SHARPEN_WINDOW pixels a side: in
     a large picture, the part around the object's centre). Where it moves the camera to a worse
-    view, only the reading can tell: `api.Watermarker.look_again` reads both."""
+    view, only the reading can tell: `reading.second_look` reads both."""
     height, width = picture.shape[-2:]
     with torch.no_grad():
         view = _relit_view(mesh, camera, picture, mask, margin=2)
@@ -670,7 +676,7 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     flow, and the band-passed picture `banded` (1, 3, H, W) moves with it (brightness constancy: dI =
     -grad I . flow), as in Lucas-Kanade image alignment. `fragments`: the rasterization of `banded`'s
     render."""
-    from .render import surface_points
+    from ..render import surface_points
 
     height, width = banded.shape[-2:]
     points, _ = surface_points(mesh, fragments, camera)
@@ -799,7 +805,7 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
     the camera under which the original's texture explains the picture best (`texture_misfit` over
     the registered silhouette's own interior, so no guess judges itself). A guess whose camera
     explains it well (misfit under ACCEPT_MISFIT) ends the search. `recut` (the best camera's
-    silhouette (H, W) bool -> a new guess, e.g. `segment.recut`), where given, makes a new guess from
+    silhouette (H, W) bool -> a new guess, e.g. `segmentation.recut`), where given, makes a new guess from
     each guess's registration that the texture does not confirm and whose silhouette disagrees with
     the guess (IoU under RECUT_BELOW_IOU: on a plain background whose frame cuts the object off, a
     registration can be right yet over ACCEPT_MISFIT), up to RECUT_ROUNDS in a row while they fit

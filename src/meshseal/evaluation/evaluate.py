@@ -1,6 +1,7 @@
-"""Evaluation on a data split: bit accuracy, what a person sees (PSNR, SSIM and FLIP over the object's
-pixels; whole-frame PSNR/SSIM as `psnr_render`/`ssim_render`, as the seed paper reports), texture
-PSNR, vertex changes.
+"""Evaluation as users detect: each test mesh marked as `meshseal embed` marks it, rendered, saved as
+8-bit pictures, optionally attacked (`attacks`), and read as `meshseal detect` reads them (camera
+known, or registered) through the `Watermarker` facade. The training pass's own measurement of a
+split is `training.validate.evaluate`.
 
 Deterministic for a seed: the same meshes, messages, cameras and lights every time.
 """
@@ -13,80 +14,21 @@ import time
 import numpy as np
 import torch
 
+from ..data.dataset import collate
+from ..models import WatermarkModel
+from ..render import MeshRenderer
+from ..methods.batches import batch_mark_grid, batch_texels_used, charted_item, unpadded
 from .attacks import apply as attack_picture
-from .data.dataset import collate
-from .distortions import Distortions2D, Distortions3D
-from .losses import bit_accuracy, masked_l1, psnr, ssim
-from .metrics import BUDGET_VIEWS, MAX_FLIP, seed_renders, shown_texture_psnr, strength_within, visibility
-from .models import WatermarkModel
-from .pipeline import batch_mark_grid, batch_texels_used, charted_item, run_pass, unpadded
-from .render import MeshRenderer
+from .metrics import (
+    BUDGET_VIEWS,
+    MAX_FLIP,
+    seed_renders,
+    shown_texture_psnr,
+    strength_within,
+    visibility,
+)
 
 
-@torch.no_grad()
-def evaluate(model: WatermarkModel, dataset, n_meshes: int | None = None, views: int = 1, seed: int = 0,
-             render_size: int = 128, sampler: str = "seed", batch_size: int = 8,
-             distortions_3d: Distortions3D | None = None, distortions_2d: Distortions2D | None = None,
-             unrender_jitter: float = 0.0, progress: bool = False) -> dict:
-    """Bit accuracy and what the mark changed over `n_meshes` of `dataset` x `views` (see `meshseal
-    eval`); `progress`: a bar of the meshes read on stderr."""
-    import sys
-
-    from tqdm import tqdm
-
-    was_training = model.training
-    model.eval()
-    generator = torch.Generator().manual_seed(seed + 1_000_003)
-    renderer = MeshRenderer()
-    count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
-    accuracies, psnrs, ssims, texture_psnrs, normal_l1, uv_l1, seen = [], [], [], [], [], [], []
-    render_l1, texture_l1, texture_ssims, shown_psnrs = [], [], [], []
-    device = model.device
-    bar = tqdm(total=views * count, unit="mesh", file=sys.stderr, disable=not progress)
-    for view in range(views):
-        for start in range(0, count, batch_size):
-            items = [dataset[i] for i in range(start, min(count, start + batch_size))]
-            batch = collate(items, device)
-            n = len(items)
-            message = torch.randint(0, 2, (n, model.n_bits), generator=generator).float().to(device)
-            out = run_pass(model, batch, message, renderer, generator, render_size, sampler,
-                           distortions_3d, distortions_2d, unrender_jitter=unrender_jitter)
-            mask = out.vertex_mask
-            accuracies.append(bit_accuracy(out.logits, message))
-            psnrs.append(psnr(out.render_marked, out.render))
-            seen.append(visibility(out.render.cpu(), out.render_marked.cpu(), out.coverage.cpu()))
-            ssims.append(ssim(out.render_marked, out.render))
-            texture_psnrs.append(psnr(out.texture_marked, out.texture))
-            shown = out.shown if out.shown is not None else batch_texels_used(batch)  # learned marks: worked out here
-            shown_psnrs.append(shown_texture_psnr(out.texture_marked, out.texture, shown))
-            render_l1.append((out.render_marked - out.render).abs().mean().reshape(1))
-            texture_l1.append((out.texture_marked - out.texture).abs().mean().reshape(1))
-            texture_ssims.append(ssim(out.texture_marked, out.texture))
-            normal_l1.append(masked_l1(out.normals_marked, out.normals, mask).reshape(1))
-            uv_l1.append(masked_l1(out.uvs_marked, out.uvs, mask).reshape(1))
-            bar.update(n)
-    bar.close()
-    model.train(was_training)
-    accuracy = torch.cat(accuracies)
-    finite = lambda values: values[torch.isfinite(values)]  # noqa: E731 (identical images: infinite PSNR)
-    return {
-        "bit_acc": float(accuracy.mean()),
-        "bit_acc_std": float(accuracy.std()) if len(accuracy) > 1 else 0.0,
-        "psnr_object": sum(s["psnr_object"] for s in seen) / len(seen),
-        "ssim_object": sum(s["ssim_object"] for s in seen) / len(seen),
-        "flip_object": sum(s["flip_object"] for s in seen) / len(seen),
-        "psnr_render": float(finite(torch.cat(psnrs)).mean()),
-        "ssim_render": float(torch.cat(ssims).mean()),
-        "psnr_texture": float(finite(torch.cat(texture_psnrs)).mean()),
-        "psnr_texture_shown": float(finite(torch.cat(shown_psnrs)).mean()),
-        "ssim_texture": float(torch.cat(texture_ssims).mean()),
-        "l1_texture": float(torch.cat(texture_l1).mean()),
-        "l1_render": float(torch.cat(render_l1).mean()),
-        "l1_normal": float(torch.cat(normal_l1).mean()),
-        "l1_uv": float(torch.cat(uv_l1).mean()),
-        "n_meshes": count,
-        "n_views": views,
-    }
 
 
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
@@ -108,19 +50,22 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     WebP, resizing, crops, a screenshot, ...), registered (or, without `register`, with its camera:
     photometric attacks only), and `result["attacks"]` gives per attack the pictures, the share
     detected and read exactly, the bit accuracy and the seconds a picture."""
-    from . import payload
-    from .api import PALETTE_WARNING, Watermarker
-    from .models.spread import palette_share
-    from .pipeline import random_backgrounds, sample_views
-    from .register import pose_error
-    from .render import MeshBatch
+    from .. import payload
+    from ..api import Watermarker
+    from ..methods.spread import PALETTE_WARNING
+    from ..models.spread import palette_share
+    from ..reading.registration import pose_error
+    from ..render import MeshBatch
+    from ..training.views import random_backgrounds
+    from ..render.views import sample_views
 
-    if not model.informed:
-        raise ValueError("registration is for informed models")
     was_training = model.training
     model.eval()
     watermarker = Watermarker(model)
-    coded = watermarker.calibrated and model.n_bits in payload.SCHEMAS
+    if not watermarker.informed:
+        raise ValueError("registration is for informed models")
+    calibrated = watermarker.method.calibrated
+    coded = calibrated and model.n_bits in payload.SCHEMAS
     generator = torch.Generator().manual_seed(seed + 2_000_003)
     renderer = MeshRenderer()
     count = len(dataset) if n_meshes is None else min(n_meshes, len(dataset))
@@ -131,7 +76,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         batch = collate([dataset[index]], device)
         positions, _, uvs, faces = unpadded(batch, 0)  # the mesh's own UV use, before any charts
         palette = palette_share(positions, faces, uvs) >= PALETTE_WARNING
-        if watermarker.calibrated:  # palette faces charted, as `meshseal embed` marks the mesh
+        if calibrated:  # palette faces charted, as `meshseal embed` marks the mesh
             batch = charted_item(batch)
         if coded:
             identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
@@ -142,10 +87,10 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         with torch.no_grad():
             used = batch_texels_used(batch)
             strength = None  # learned models have no strength
-            if watermarker.calibrated:  # as `meshseal embed` marks it: within its FLIP budget
+            if calibrated:  # as `meshseal embed` marks it: within its FLIP budget
                 normals_marked, uvs_marked = normals, uvs
-                grid = batch_mark_grid(model, batch)
-                mark = lambda at: model.mark_texture(texture, message, at, payload.key_seed(None), grid, used)  # noqa: E731
+                grid = batch_mark_grid(model.texture_encoder, batch)
+                mark = lambda at: model.texture_encoder(texture, message, at, payload.key_seed(None), grid, used)  # noqa: E731
                 if max_flip is None:
                     texture_marked, strength = mark(1.0), 1.0
                 else:
@@ -230,7 +175,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                 "max": _finite(pose[pose.isfinite()].max()) if bool(pose.isfinite().any()) else None},
               "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size,
               "n_unreadable": sum(r["unreadable"] for r in rows)}
-    if watermarker.calibrated and max_flip is not None:
+    if calibrated and max_flip is not None:
         result |= {"max_flip": max_flip, "strength_mean": mean("strength"),
                    "strength_lowered": float(np.mean([r["strength"] < 1.0 for r in rows]))}
     if coded:
@@ -264,7 +209,7 @@ def _finite(value) -> float | None:
 
 def _read_or_none(watermarker, picture, original, **options):
     """`Watermarker.read`, or None where it refuses the picture with a one-line error."""
-    from .errors import MeshsealError
+    from ..errors import MeshsealError
 
     try:
         return watermarker.read(picture, original, **options)

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from ..imaging import gaussian_blur
+
 
 def _uniform(n, low, high, generator, device, dtype):
     return low + (high - low) * torch.rand(n, generator=generator).to(device=device, dtype=dtype)
@@ -137,24 +139,6 @@ def jpeg(image: torch.Tensor, quality: float) -> torch.Tensor:
     y, cb, cr = ycc[:, 0] + 128, ycc[:, 1], ycc[:, 2]
     rgb = torch.stack([y + 1.402 * cr, y - 0.344136 * cb - 0.714136 * cr, y + 1.772 * cb], dim=1) / 255.0
     return rgb[..., :height, :width].clamp(0.0, 1.0)
-
-
-def blur_radius(sigma: float) -> int:
-    """How many pixels `gaussian_blur` reaches on each side."""
-    return max(1, int(math.ceil(2.5 * sigma)))
-
-
-def gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
-    if sigma <= 0:
-        return image
-    radius = blur_radius(sigma)
-    x = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
-    kernel = torch.exp(-x * x / (2 * sigma * sigma))
-    kernel = kernel / kernel.sum()
-    channels = image.shape[1]
-    padded = F.pad(image, (radius, radius, radius, radius), mode="replicate")
-    out = F.conv2d(padded, kernel.reshape(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
-    return F.conv2d(out, kernel.reshape(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
 
 
 def resize_round_trip(image: torch.Tensor, factor: float) -> torch.Tensor:

@@ -4,7 +4,7 @@
    rendered by the engine from K views of the seed's camera and light ranges; each picture is kept with
    its camera and message in OUT/cache/ENGINE/, one .npz per mesh (resumable: done meshes are skipped).
 2. Fine-tune: the decoder (only) learns to read the cached pictures, un-rendered with their known
-   camera as detection does (`pipeline.uv_maps` for informed models; the framed picture for blind ones),
+   camera as detection does (`reading.relight.uv_maps` for informed models; the framed picture for blind ones),
    by Adam on the bit cross-entropy. Checkpoints every `save_every` steps (resumable).
 3. Keep or not: bit accuracy of the original and the fine-tuned decoder on held-out test meshes rendered
    by every engine in `engines`; the fine-tuned one is written to OUT/model.safetensors only if it does
@@ -25,12 +25,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .errors import MeshsealError
-from .mesh import Material, Mesh
-from .models import WatermarkModel
-from .models.io import save_model, save_tensors
-from .pipeline import frame, sample_views, uv_maps
-from .render import Cameras, MeshBatch, make_renderer
+from ..errors import MeshsealError
+from ..mesh import Material, Mesh
+from ..models import WatermarkModel
+from ..models.io import save_model, save_tensors
+from ..reading.relight import uv_maps
+from ..render import Cameras, MeshBatch, make_renderer
+from ..reading.framing import frame
+from ..render.views import sample_views
 
 BACKGROUND = (0.0, 0.0, 0.0)  # as training renders
 
@@ -107,7 +109,9 @@ def build_cache(model: WatermarkModel, dataset, cfg: FinetuneConfig, folder: Pat
 
 def decoder_input(model: WatermarkModel, item: dict, pictures: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """What the decoder reads from pictures (K, 3, H, W) of an item taken with `cameras`."""
-    if model.informed:
+    from ..methods import method_for
+
+    if method_for(model).informed:
         original = MeshBatch.from_tensors(item["positions"][None], item["normals"][None], item["uvs"][None],
                                           item["faces"][None], item["texture"][None])
         with torch.no_grad():
@@ -140,7 +144,7 @@ def finetune(model: WatermarkModel, train_set, test_set, cfg: FinetuneConfig, ou
     if model.decoder is None or not any(p.requires_grad for p in model.decoder.parameters()):
         reader = "a matched filter" if model.config.decoder == "matched" else f"the '{model.config.decoder}' reader"
         raise MeshsealError(f"this model's decoder has no learned parameters ({reader}): there is nothing "
-                            "to fine-tune; it reads every engine as it is (docs/engines.md)")
+                            "to fine-tune; it reads every engine as it is (docs/renderers.md)")
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     train_paths = build_cache(model, train_set, cfg, out / "cache" / cfg.engine, log)

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from .core import Mesh
+from ..mesh.core import Mesh
 
 CHART_ABOVE = 0.1  # chart when this share of the textured surface is on palette faces
 POINT_TEXELS = 1.0  # a palette face's UVs lie within this many texels of each other

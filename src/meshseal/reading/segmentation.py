@@ -6,7 +6,7 @@ from all around give a colour histogram of the object, the picture's own pixels 
 their ratio per pixel (histogram back-projection, smoothed over a few pixels) says where the object
 probably is. That guess seeds GrabCut (OpenCV), which fits colour mixtures to the picture itself and
 cuts along its edges. Registration then runs on the mask as on a plain background's
-(`register.register_with_masks` decides between this guess and the plain-background one). Where neither
+(`registration.register_with_masks` decides between this guess and the plain-background one). Where neither
 registers, the silhouette of the best camera found seeds a second cut (`recut`): even a camera several
 pixels off, or a wrong view of a like shape, says where the object is far better than colours alone.
 The same second cut mends a plain background's mask where a dark object on a dark backdrop lost parts.
@@ -62,8 +62,8 @@ def _lookup(histogram: np.ndarray, image: np.ndarray) -> np.ndarray:
 def object_colours(mesh, views: int = COLOUR_VIEWS, size: int = 64) -> np.ndarray:
     """The colours (N, 3) of the original `mesh` (MeshBatch, canonical frame) as pictures show it:
     its covered pixels seen from `views` directions all around, lit from beside the camera."""
-    from .register import DISTANCE, _center_objects, _up_for
-    from .render import Cameras, MeshRenderer, fibonacci_directions, lights_at
+    from ..render import Cameras, MeshRenderer, fibonacci_directions, lights_at
+    from .registration import DISTANCE, _center_objects, _up_for
 
     directions = fibonacci_directions(views).to(mesh.positions)
     cameras = Cameras(DISTANCE * directions, torch.zeros_like(directions), _up_for(directions), 40.0)

@@ -64,7 +64,7 @@ def visibility(original: torch.Tensor, marked: torch.Tensor, mask: torch.Tensor)
 def shown_texture_psnr(marked: torch.Tensor, original: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
     """Texture PSNR (B,) over the texels each mesh shows: marked (B, 3, h, w) against original
     (B, 3, H, W) resampled alike, used (B, 1, H, W) (`batch_texels_used`) resized as the mark resized it."""
-    from .models.spread import resampled_like
+    from ..models.spread import resampled_like
 
     original = resampled_like(original, marked)
     used = F.interpolate(used.float(), size=marked.shape[-2:], mode="nearest")
@@ -99,9 +99,9 @@ def seed_renders(mesh, views: int, size: int = 256):
     """A mesh (`Mesh`, brought into the canonical frame, or a `MeshBatch` already in it) rendered by our
     renderer from `views` seeded views (seed 0) -> pictures (B, 3, H, W) and the object's interior
     pixels (B, H, W): what `meshseal embed` reports visibility in."""
-    from .mesh import Mesh, normalize, to_z_up
-    from .pipeline import sample_views
-    from .render import MeshBatch, MeshRenderer
+    from ..mesh import Mesh, normalize, to_z_up
+    from ..render import MeshBatch, MeshRenderer
+    from ..render.views import sample_views
 
     cameras, lights = sample_views(views, "seed", torch.Generator().manual_seed(0))
     batch = MeshBatch.from_mesh(normalize(to_z_up(mesh))) if isinstance(mesh, Mesh) else mesh

@@ -1,0 +1,236 @@
+"""The one interface every watermarking scheme implements, and the decision all of them share.
+
+A `Method` wraps a `models.WatermarkModel` (its buffers and networks) and answers what `Watermarker`
+and the training pass ask of a scheme:
+
+- `layout(mesh)`: the mesh as the scheme marks it, and as detection takes the original;
+- `embed(mesh, message, key_seed, strength, warn)`: a marked copy of the mesh;
+- `prepare(mesh)`: the original ready for reading (informed schemes), once for many pictures;
+- `evidence(original, picture, camera)` (informed) or `blind_evidence(pixels, mask, background)`
+  (blind): one picture's evidence, before any decision;
+- `soft_bits(evidence, key, expected)`: soft bits, their null weights and the grids tried;
+- `decide(readings, key, expect)`: the Detection (shared here: it needs only `soft_bits`);
+- `mark_batch` / `read_batch`: the same two halves on a training batch (`training.step.run_pass`).
+
+Capabilities are attributes, not kinds: `informed` (reading needs the original mesh and the
+picture's camera), `calibrated` (soft bits are z-scores with an exact null, so decisions and
+p-values exist), `takes_strength` (the mark's amplitude is a free knob), `flip_budget` (embedding keeps the mark
+within a visibility budget by default), `second_look` (a registered
+reading may be looked at again, `reading.second_look`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .. import payload
+
+
+@dataclass
+class Detection:
+    """What detection read from one picture (or, pooled, from several pictures of one asset).
+
+    detected: whether the picture carries a mark under the key, at the false-positive rate
+    `payload.FPR` (None for methods without calibrated soft bits); p_value: the chance that a picture
+    without such a mark scores this high (see payload.detection_pvalue / match_pvalue); message: the
+    decoded text or ID, None when not detected or not decodable; bits: the raw hard bits '0101...';
+    soft: the soft bits (matched-filter z, mean 0 and variance 1 each without a mark; learned models:
+    logits); errors_corrected: raw bits the error correction flipped. `box` is the object's square box
+    (cx, cy, half) in the picture; `camera` 'metadata' or 'registered' for informed methods.
+    `silhouette_iou`: the original's silhouette under the picture's camera against the picture's
+    object (registered pictures; pictures whose camera came from metadata when they read no mark);
+    `reason`: why no mark was read, where a plausible mistake explains it (`Watermarker.why_not`).
+    """
+
+    bits: str
+    soft: list[float]
+    p_value: float | None
+    detected: bool | None
+    message: str | int | None
+    errors_corrected: int | None
+    box: tuple[float, float, float] | None
+    camera: str | None = None
+    registration_iou: float | None = None
+    pictures: int = 1
+    silhouette_iou: float | None = None
+    reason: str | None = None
+
+    def to_dict(self) -> dict:
+        result = {"detected": self.detected, "p_value": None if self.p_value is None else float(f"{self.p_value:.4g}"),
+                  "message": self.message, "bits": self.bits, "errors_corrected": self.errors_corrected,
+                  "soft": [round(v, 3) for v in self.soft]}
+        if self.box is not None:
+            result["box"] = [round(v, 1) for v in self.box]
+        if self.camera is not None:
+            result["camera"] = self.camera
+        if self.registration_iou is not None:
+            result["registration_iou"] = round(self.registration_iou, 4)
+        if self.pictures != 1:
+            result["pictures"] = self.pictures
+        if self.silhouette_iou is not None:
+            result["silhouette_iou"] = round(self.silhouette_iou, 4)
+        if self.reason is not None:
+            result["reason"] = self.reason
+        return result
+
+
+class Method:
+    """A watermarking scheme over a `WatermarkModel` (see the module docstring for the protocol)."""
+
+    name = "method"
+    informed = False
+    calibrated = False
+    takes_strength = False
+    flip_budget = False  # `meshseal embed` keeps the mark within a FLIP budget by default (`Watermarker.embed_within`)
+    second_look = False
+    paper_pictures = False  # evaluated on the paper's 600 x 400 pictures by default
+
+    def __init__(self, model):
+        self.model = model
+
+    @property
+    def n_bits(self) -> int:
+        return self.model.n_bits
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.device
+
+    def params(self) -> dict:
+        """The scheme's parameters as a model card names them."""
+        return self.model.config.to_dict()
+
+    # ------------------------------------------------------------ embed
+    def layout(self, mesh, note: bool = False):
+        """`mesh` as this method marks it and as detection takes the original (default: as it is)."""
+        return mesh
+
+    def mark_grid(self, mesh) -> int | None:
+        """The cell grid the mark uses on `mesh` (None: the method has no grid)."""
+        return None
+
+    def embed(self, mesh, message: torch.Tensor, key_seed: int | None, strength: float, warn: bool):
+        """A marked copy of `mesh` carrying `message` (1, N) in {0, 1}."""
+        raise NotImplementedError
+
+    def key_seed(self, key) -> int | None:
+        """The keyed pattern's seed (None for methods whose pattern has no key)."""
+        return None
+
+    # ------------------------------------------------------------ read
+    def prepare(self, mesh):
+        """The original, ready for reading many pictures of it (informed methods)."""
+        raise NotImplementedError(f"the {self.name} method reads pictures without the original mesh")
+
+    def evidence(self, original, picture: torch.Tensor, camera) -> torch.Tensor:
+        """One picture (1, 3, H, W) seen from `camera` -> its evidence (E,) (informed methods)."""
+        raise NotImplementedError(f"the {self.name} method reads pictures without the original mesh")
+
+    def read_pictures(self, original, pictures: torch.Tensor, cameras, key_seed: int | None = None) -> torch.Tensor:
+        """Soft bits (B, N) of pictures (B, 3, H, W) of a prepared original seen from `cameras` (informed methods)."""
+        raise NotImplementedError(f"the {self.name} method reads pictures without the original mesh")
+
+    def blind_evidence(self, pixels, mask, background: torch.Tensor) -> torch.Tensor:
+        """One picture (H, W, 3) numpy in [0, 1] with its object `mask` -> its evidence (E,) (blind methods)."""
+        raise NotImplementedError(f"the {self.name} method reads pictures with the original mesh")
+
+    def soft_bits(self, evidence: torch.Tensor, key, expected) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+        """Pooled evidence (1, E) -> soft bits (N,) double, their null weights (None: not
+        calibrated) and how many readings were tried to pick them (the p-value pays for each)."""
+        return evidence[0].double(), None, 1
+
+    def own_mark_pvalue(self, original, key=None) -> float | None:
+        """The p-value that the original's own textures carry a mark under `key` (None: not measurable)."""
+        return None
+
+    def decide(self, readings: list, key=None, expect=None) -> Detection:
+        """The decision on the evidence of readings (`reading.read.Reading`; several: pooled, their
+        evidence added). Each reading's `tries` (cameras a second look could try) multiplies the
+        p-value, as does every grid `soft_bits` tried (Bonferroni)."""
+        first = readings[0]
+        single = len(readings) == 1
+        extra = {"box": first.box if single else None, "camera": first.camera,
+                 "registration_iou": first.registration_iou if single else None,
+                 "pictures": len(readings), "silhouette_iou": first.registration_iou if single else None}
+        evidence = torch.stack([r.evidence for r in readings]).sum(0, keepdim=True)
+        coded = self.n_bits in payload.SCHEMAS
+        expected = payload.encode(expect, key, self.n_bits) if expect is not None and coded else None
+        soft, weights, tries = self.soft_bits(evidence, key, expected)
+        tries *= math.prod(r.tries for r in readings)
+        bits = "".join("1" if v > 0 else "0" for v in soft.tolist())
+        if not coded:
+            return Detection(bits, soft.tolist(), None, None, None, None, **extra)
+        calibrated = weights is not None
+        any_mark_p = min(1.0, tries * float(payload.detection_pvalue(soft, weights))) if calibrated else None
+        marked = any_mark_p is not None and payload.detected(any_mark_p)
+        decoded = payload.decode(soft, key) if marked or expect is not None else None  # no message to report else
+        if expect is not None:
+            if calibrated:
+                p_value = min(1.0, tries * float(payload.match_pvalue(soft, expected, weights)))
+            else:
+                p_value = payload.binomial_pvalue(int(((soft > 0).float() == expected).sum()), self.n_bits)
+            # A mark of another message still correlates with this one: the code must read this one.
+            detected = payload.detected(p_value) and decoded.message == getattr(expect, "value", expect)
+        elif calibrated:
+            p_value, detected = any_mark_p, marked
+        else:  # uncalibrated logits: no decision without an expected message
+            p_value, detected = None, None
+        message = decoded.message if detected or marked else None
+        return Detection(bits, soft.tolist(), p_value, detected, message,
+                         decoded.errors_corrected if message is not None else None, **extra)
+
+    # ------------------------------------------------------------ training pass
+    def mark_batch(self, batch: dict, message: torch.Tensor, vertex_mask):
+        """A dataset batch marked: (normals, uvs, texture, shown texels (B, 1, H, W) or None)."""
+        raise NotImplementedError
+
+    def read_batch(self, pictures, alpha, original_mesh, cameras, original_image, background, frame_size,
+                   distortions_2d, generator, reference_mix):
+        """What the pass decodes: (decoder input, logits or soft bits (B, N))."""
+        raise NotImplementedError
+
+
+def source_prefix(mesh) -> str:
+    """'path: ' of the file a mesh came from, for error messages ('' for a mesh made in memory)."""
+    return f"{mesh.source.path}: " if mesh.source is not None else ""
+
+
+def informed_original(method: Method, mesh):
+    """The original mesh (a Mesh, a path, or an already prepared MeshBatch) in the canonical frame, laid
+    out as `method` marks it, on its device: what informed reading un-renders pictures onto."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from ..errors import MeshsealError
+    from ..mesh import load as load_mesh
+    from ..mesh import normalize, to_z_up
+    from ..render import MeshBatch
+
+    if isinstance(mesh, MeshBatch):
+        return mesh
+    if mesh is None:
+        raise MeshsealError("this model reads pictures with the original mesh: give it (--mesh FILE)")
+    if isinstance(mesh, (str, Path)):
+        mesh = load_mesh(mesh)
+    if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
+        raise MeshsealError("the original mesh has no texture with UVs, so it cannot carry this model's mark")
+    return MeshBatch.from_mesh(normalize(to_z_up(replace(method.layout(mesh), source=None))).to(method.device))
+
+
+def textured_geometry(batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Positions, textured faces and uvs of a prepared original (a one-mesh MeshBatch)."""
+    faces = batch.faces[0] if batch.faces.dim() == 3 else batch.faces
+    material = batch.face_material[0] if batch.face_material.dim() == 2 else batch.face_material
+    textured = torch.tensor([t is not None for t in batch.textures], device=material.device)
+    return batch.positions[0], faces[textured[material.long()]], batch.uvs[0]
+
+
+def textured_faces(mesh) -> torch.Tensor:
+    """The faces (F', 3) of a Mesh whose material has a texture (the ones a texture mark lies on)."""
+    textured = torch.tensor([m.texture is not None for m in mesh.materials])
+    if mesh.face_material is None:
+        return mesh.faces if bool(textured.any()) else mesh.faces[:0]
+    return mesh.faces[textured[mesh.face_material.long()]]

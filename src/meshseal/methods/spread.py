@@ -1,0 +1,270 @@
+"""The keyed spread-spectrum method (the default): a keyed pattern of cells in the texture
+(`models.spread`), read by a matched filter after un-rendering a picture onto the original mesh
+relit to match it. Its soft bits are z-scores with an exact null (`payload`)."""
+
+from __future__ import annotations
+
+import torch
+
+from ..imaging import gaussian_blur
+from ..models import WatermarkModel
+from ..reading.footprint import picture_footprint, take_off_linear_light
+from ..reading.relight import relit_residual
+from ..render import (
+    Cameras,
+    MeshBatch,
+    interpolate,
+)
+from .base import Method, informed_original, source_prefix, textured_faces, textured_geometry
+
+PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has faces without UV area
+
+
+def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
+                    whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
+                    grids: tuple[int, ...] | None = None) -> torch.Tensor:
+    """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
+    original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
+    `grids` (default the model's own grid alone): the cell grids to read, their sums side by side
+    (B, sum of C*C), the residual computed once.
+
+    With `footprint` (the default) each picture's sampling is estimated first (`picture_footprint`):
+    the prediction subtracted and the template the residual is matched against are both the
+    original's texture as that picture sampled it, so pictures from engines that average over the
+    pixel (and resized or blurred ones) are read with a filter matched to them. With `brightness` (the
+    default) each pixel's brightness relative to the prediction is fitted and taken off first (see
+    below). `whitening`: options of `models.spread.whiten` other than its defaults (experiments). Every
+    step looks at the picture and the original only, never at a key: z stays N(0, 1) without a mark."""
+    from ..models.spread import cell_sums, whiten
+    from ..render import sample_textures
+    from ..render.renderer import per_fragment
+
+    encoder = model.texture_encoder
+    found = relit_residual(mesh, image, cameras)
+    n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
+    with torch.no_grad():
+        # An untextured material carries no mark: weight 0 (a None texture would sample as white).
+        masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
+        gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
+        pixel = found.fragments.pixel.index_select(0, found.keep)
+        sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
+        expected = found.expected if sampled is None else sampled.expected
+        usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
+        textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
+        usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
+        colour = encoder.colour.to(image)
+        if brightness:
+            # Each pixel's own brightness against the prediction (a shadow, one of two coincident sheets
+            # lit from behind, a tone curve): taken off along the predicted colour, so the residual
+            # keeps the part of the mark orthogonal to it, and the template scales by what is left.
+            ratio = (found.seen * expected).sum(1) / (expected * expected).sum(1).clamp_min(1e-6)
+            residual = found.seen - ratio[:, None] * expected
+            direction = expected / expected.norm(dim=1, keepdim=True).clamp_min(1e-6)
+            gain = gain * ratio.clamp(0.0, 3.0) * (1.0 - (direction * colour).sum(1) ** 2)
+            residual, taken = take_off_linear_light(residual, expected, pixel, (n_images, height, width))
+            along = (residual * colour).sum(1)
+            kept = 1.0 - (direction * colour).sum(1) ** 2  # the mark keeps this much of its colour ...
+            gain = gain * (kept - (taken * colour).sum(1) ** 2) / kept.clamp_min(1e-6)  # ... and loses this
+        else:
+            along = ((found.seen - expected) * colour).sum(1)
+        whitened = torch.zeros_like(along)
+        if bool(usable.any()):
+            whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **(whitening or {}))
+        whitened = whitened * gain
+        grids = grids or (encoder.chips,)
+        point = torch.ones(n_images, dtype=torch.bool) if sampled is None else sampled.sigma.isnan()
+        at_point = point.to(found.image_index.device).index_select(0, found.image_index)
+        sums = whitened.new_zeros(n_images, sum(chips ** 2 for chips in grids))
+        if bool(point.any()):
+            amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)  # the JND mask, unsigned
+            sums = cell_sums(encoder, whitened * amplitude * at_point, found.uv, found.image_index, n_images, grids)
+        if bool(point.all()):
+            return sums
+        # The template under an area footprint: the adjoint of (blur, then average each pixel's
+        # sub-pixel samples), i.e. the whitened residual blurred and spread over the sub-pixels.
+        canvas = whitened.new_zeros(n_images * height * width).index_copy(0, pixel, whitened * ~at_point)
+        canvas = canvas.reshape(n_images, 1, height, width)
+        for index in torch.nonzero(~point).squeeze(1).tolist():
+            canvas[index] = gaussian_blur(canvas[index: index + 1], float(sampled.sigma[index]))[0]
+        fragments = sampled.fragments
+        spread = canvas.reshape(-1).index_select(0, sampled.parent) / sampled.scale ** 2  # the adjoint of the mean
+        uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
+        amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
+        return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, grids)
+
+
+class SpreadMethod(Method):
+    """The keyed spread-spectrum mark and its matched filter."""
+
+    name = "spread"
+    informed = True
+    calibrated = True
+    takes_strength = True
+    flip_budget = True
+    second_look = True
+
+    def __init__(self, model):
+        super().__init__(model)
+        self.encoder = model.texture_encoder
+        self._grids_of: tuple | None = None  # (prepared original, its grids_to_read)
+
+    def describe(self) -> str:
+        """The model card's sentence on the embedder and the extractor."""
+        config = self.model.config.to_dict()
+        coarse, fine = config.get("coarse_chips", 0), config.get("fine_chips", 0)
+        others = ([f"{coarse}^2 on a mesh whose {config['chips']}^2 cells would be under {config['coarse_below']} px in a "
+                   "256^2 view (a minified texture)"] if coarse else []) + \
+                 ([f"{fine}^2 where they would be over {config['fine_above']} px (a magnified texture, resampled up when "
+                   "it has fewer texels)"] if fine else [])
+        coarse_text = f" ({'; '.join(others)}; detection reads both grids there)" if others else ""
+        text = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
+                        f"{coarse_text}, each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
+                        f"shaped by local texture activity (window {config['activity_window']}, floor "
+                        f"{config['activity_floor']}), laid on the texels the mesh shows and scaled to texture PSNR {config['texture_psnr']} dB over those at strength 1; "
+                        "read by a matched filter (the residual whitened in the picture) after un-rendering the picture onto the "
+                        "original mesh relit to match it "
+                        "(detection needs the original mesh and the picture's camera: from the PNG's metadata, or "
+                        "registered). Its soft bits are z-scores (given the picture, a Rademacher sum per bit without a mark: exact p-values, `payload.detection_pvalue`)")
+        return text
+
+    def key_seed(self, key) -> int:
+        from .. import payload
+
+        return payload.key_seed(key)
+
+    # ------------------------------------------------------------ embed
+    def layout(self, mesh, note: bool = False):
+        """Faces without UV area (a palette texture) get charts of their own (`methods.charts`), so that
+        they carry the mark too. A charted mesh is its own layout. `note`: say on stderr what charting added."""
+        import sys
+
+        from .charts import chart_palette_faces
+
+        charted = chart_palette_faces(mesh)
+        if note and charted is not mesh:
+            sizes = [f"{a.texture.shape[1]}x{a.texture.shape[0]} -> {b.texture.shape[1]}x{b.texture.shape[0]}"
+                     for a, b in zip(mesh.materials, charted.materials)
+                     if a.texture is not None and a.texture.shape != b.texture.shape]
+            print(f"meshseal: note: faces without UV area (the texture used as a colour palette) got charts of "
+                  f"their own so that they carry the mark too: {charted.n_vertices - mesh.n_vertices} vertices "
+                  f"added, texture {', '.join(sizes)}", file=sys.stderr)
+        return charted
+
+    def mark_grid(self, mesh) -> int | None:
+        """Cells per side of the UV square the mark uses on `mesh` (coarser where its texture is
+        minified, finer where magnified: `SpreadSpectrumEncoder.grid_for`)."""
+        if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
+            return None
+        mesh = self.layout(mesh)
+        return self.encoder.grid_for(mesh.positions, textured_faces(mesh), mesh.uvs)
+
+    def embed(self, mesh, message, key_seed, strength, warn):
+        import sys
+
+        from ..errors import MeshsealError
+        from ..models.spread import palette_share, texels_used
+
+        if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
+            raise MeshsealError(f"{source_prefix(mesh)}the mesh has no texture with UVs to carry the watermark, "
+                                f"and this model only marks textures")
+        marked = self.layout(mesh.copy(), note=True)
+        grid = self.mark_grid(marked)
+        palette = palette_share(marked.positions, textured_faces(marked), marked.uvs)
+        if palette >= PALETTE_WARNING and warn:
+            print(f"meshseal: warning: {palette:.0%} of the textured surface has faces without UV area (the "
+                  "texture used as a colour palette) and could not be given charts (a tiled texture, or vertices "
+                  "shared with another material): the mark has little room there and may read poorly",
+                  file=sys.stderr)
+        for index, material in enumerate(marked.materials):
+            if material.texture is None:
+                continue
+            texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
+            used = texels_used(marked.uvs, marked.faces[marked.face_material == index], *texture.shape[-2:])
+            try:
+                marked_texture = self.encoder(texture, message, strength, key_seed, grid, used)
+            except ValueError as error:
+                raise MeshsealError(str(error)) from None
+            material.texture = marked_texture[0].permute(1, 2, 0).cpu()
+        return marked
+
+    # ------------------------------------------------------------ read
+    def prepare(self, mesh):
+        return informed_original(self, mesh)
+
+    def evidence(self, original, picture, camera):
+        """Matched-filter cell sums of every grid a mark may use on this mesh, side by side
+        (`soft_bits` splits them)."""
+        return spread_evidence(self.model, original, picture, camera, grids=self.grids_to_read(original))[0].cpu()
+
+    def read_pictures(self, original, pictures, cameras, key_seed=None) -> torch.Tensor:
+        """Soft bits (B, N) of pictures (B, 3, H, W) of the prepared `original` seen from `cameras`,
+        on the model's own grid under the pattern of `key_seed` (None: the model's own)."""
+        from ..models.spread import soft_bits
+
+        return soft_bits(self.encoder, spread_evidence(self.model, original, pictures, cameras), key_seed)
+
+    def grids_to_read(self, original) -> tuple[int, ...]:
+        """`grids_to_read` of a prepared original, worked out once for it rather than per picture (it
+        measures every face, and a folder holds many pictures of one asset)."""
+        if self._grids_of is None or self._grids_of[0] is not original:
+            self._grids_of = (original, self.encoder.grids_to_read(*textured_geometry(original)))
+        return self._grids_of[1]
+
+    def soft_bits(self, evidence, key, expected):
+        """Soft bits and cell weights of the cell grid (of those `evidence` holds side by side) whose
+        mark is likeliest, and the number of grids tried. The pick is by the statistic the p-value
+        grows with (sum of z^2; with an `expected` message, its correlation with the message's signs),
+        so only the picked grid pays for an exact p-value; any rule of picking keeps the Bonferroni bound."""
+        from ..models.spread import bit_weights, soft_bits, split_grids
+
+        key_seed = self.key_seed(key)
+        parts = split_grids(self.encoder, evidence)
+        softs = [soft_bits(self.encoder, sums, key_seed)[0].double() for sums in parts]
+        if expected is None:
+            scores = [float((soft * soft).sum()) for soft in softs]
+        else:
+            scores = [float((soft * (2.0 * expected.to(soft) - 1.0)).sum()) for soft in softs]
+        best = max(range(len(parts)), key=scores.__getitem__)
+        return softs[best], bit_weights(self.encoder, parts[best], key_seed)[0].double(), len(parts)
+
+    def own_mark_pvalue(self, original, key=None) -> float | None:
+        """The p-value that the textures of a prepared `original` carry a mark under `key`
+        themselves, read from the textures alone (`models.spread.texture_cell_sums`, every grid
+        detection reads, their sums over the materials, Bonferroni over the grids): under the FPR,
+        the mesh given as the original is a marked copy, against which a picture of it reads no mark."""
+        from .. import payload
+        from ..models.spread import bit_weights, soft_bits, split_grids, texels_used, texture_cell_sums
+
+        key_seed = self.key_seed(key)
+        grids = self.grids_to_read(original)
+        faces = original.faces[0] if original.faces.dim() == 3 else original.faces
+        material = original.face_material[0] if original.face_material.dim() == 2 else original.face_material
+        total = None
+        for index, texture in enumerate(original.textures):
+            if texture is None:
+                continue
+            texture = texture[None] if texture.dim() == 3 else texture[:1]  # (1, 3, H, W)
+            used = texels_used(original.uvs[0], faces[material == index], *texture.shape[-2:])
+            sums = texture_cell_sums(self.encoder, texture, used, grids)
+            total = sums if total is None else total + sums
+        if total is None:
+            return None
+        parts = split_grids(self.encoder, total.cpu())
+        p_values = [float(payload.detection_pvalue(soft_bits(self.encoder, sums, key_seed)[0].double(),
+                                                   bit_weights(self.encoder, sums, key_seed)[0].double()))
+                    for sums in parts]
+        return min(1.0, len(parts) * min(p_values))
+
+    # ------------------------------------------------------------ training pass
+    def mark_batch(self, batch, message, vertex_mask):
+        from .batches import batch_texels_used
+
+        shown = batch_texels_used(batch) if vertex_mask is not None else None
+        texture = self.encoder(batch["texture"], message, used=shown)
+        return batch["normals"], batch["uvs"], texture, shown
+
+    def read_batch(self, pictures, alpha, original_mesh, cameras, original_image, background, frame_size,
+                   distortions_2d, generator, reference_mix):
+        from ..models.spread import soft_bits
+
+        return pictures, soft_bits(self.encoder, spread_evidence(self.model, original_mesh, pictures, cameras))

@@ -1,0 +1,136 @@
+"""How a picture sampled the object: point samples, or each pixel's area blurred (`picture_footprint`),
+and the linear-light part of a residual that a tone curve leaves (`take_off_linear_light`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from ..imaging import gaussian_blur
+from ..render import (
+    Cameras,
+    MeshBatch,
+    MeshRenderer,
+)
+from .relight import RelitResidual
+
+FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
+LINEAR_LIGHT_SIGMA = 2.0  # px: window of the residual's variance along and across light added in linear light
+LINEAR_LIGHT_RATIO = 1.0  # taken off fully where the variance along it is this many times that across
+LINEAR_LIGHT_DISTINCT = 0.05  # and where its direction differs this much (sine) from the brightness's
+
+
+@dataclass
+class Footprint:
+    """How a picture sampled the surface, as far as the original's texture shows: per picture, point
+    samples at pixel centres (our renderer, OpenGL without multisampling) or the average over each
+    pixel's area blurred by a Gaussian of `sigma` pixels (antialiasing and pixel filters of Blender and
+    game engines, mipmaps, resizing, blur). `expected` (P, 3): the relit original under each picture's
+    footprint at the kept pixels; `usable` (P,): the kept pixels that footprint covers wholly; `sigma`
+    (B,): NaN for point samples. `fragments`: the rasterization `scale` times finer that sampled each
+    pixel's area, and `parent` (F,): the picture pixel (flat index into B*H*W) of each of its
+    fragments; the matched filter's template is built from them."""
+
+    expected: torch.Tensor
+    usable: torch.Tensor
+    sigma: torch.Tensor
+    fragments: object
+    parent: torch.Tensor
+    scale: int
+
+
+def supersampling(height: int, width: int) -> int:
+    """Sub-pixel samples per picture pixel along each axis for `picture_footprint`: 4 up to 256^2,
+    fewer for larger pictures (whose pixels cover less texture) to bound the render to about 1024^2."""
+    return max(1, min(4, 1024 // max(height, width)))
+
+
+def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,
+                      sigmas: tuple[float, ...] = FOOTPRINT_SIGMAS) -> Footprint:
+    """Pick, per picture, the footprint (point samples, or the pixel area blurred by one of `sigmas`)
+    under which the relit original best predicts the picture's fine detail: the largest normalised
+    correlation between the picture and the prediction, both high-passed (their local mean over the
+    object's pixels, sigma 1.5 px, taken off: a relighting misfit is slow and must not decide), over
+    the pixels every candidate covers. The pixel's area is the mean of a rasterization `supersampling`
+    times finer, shaded and summed per pixel without forming the finer image. The choice looks at
+    the picture and the original only, never at a key, so the matched filter's null stays the same."""
+    from ..imaging import blur_radius
+    from ..models.spread import local_mean, within_reach
+    from ..render import rasterize
+
+    scale = supersampling(height, width)
+    n_images = len(cameras)
+    relit = found.relit
+    positions = relit.positions.expand(n_images, -1, -1) if relit.positions.shape[0] == 1 else relit.positions
+    # Hard edges: the sub-pixel mean is the antialiasing, and only wholly covered pixels are used.
+    fine = rasterize(cameras.world_to_clip(positions, width / height), relit.faces, height * scale, width * scale)
+    lit = MeshRenderer().shade(relit, cameras, found.lights, fine)
+    within = fine.pixel % (height * scale * width * scale)
+    row = torch.div(within, width * scale, rounding_mode="floor")
+    column = within - row * width * scale
+    parent = fine.batch * height * width + torch.div(row, scale, rounding_mode="floor") * width + column // scale
+    sums = lit.new_zeros(n_images * height * width, 4).index_add_(0, parent, F.pad(lit, (0, 1), value=1.0)) / scale ** 2
+    kept = found.fragments.pixel.index_select(0, found.keep)
+    usable = sums[:, 3].index_select(0, kept) > 0.999
+    widths = ((0.0,) if scale > 1 else ()) + tuple(sigmas)
+    # Blurred at the picture's resolution, over the window the kept pixels and the widest blur reach.
+    local, (_, rows, columns), (top, left) = within_reach(kept, (n_images, height, width), blur_radius(max(widths)))
+    averaged = sums[:, :3].reshape(n_images, height, width, 3)[:, top: top + rows, left: left + columns]
+    averaged = averaged.permute(0, 3, 1, 2)
+    pick = lambda image: image.permute(0, 2, 3, 1).reshape(-1, 3).index_select(0, local)  # noqa: E731
+    candidates = [found.expected] + [pick(gaussian_blur(averaged, s)) for s in widths]
+    pixel = kept[usable]
+    image = found.image_index[usable]
+    values = torch.cat([found.seen] + candidates, 1)[usable]  # (U, 3 + 3K): one masked blur for all
+    detail = values - local_mean(values, pixel, (n_images, height, width), 1.5)
+    seen, predicted = detail[:, :3].unsqueeze(1), detail[:, 3:].reshape(len(pixel), len(candidates), 3)
+    agree = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (seen * predicted).sum(-1))
+    power = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (predicted * predicted).sum(-1))
+    scores = torch.nan_to_num(agree / power.sqrt(), nan=-float("inf"))
+    choice = scores.argmax(1)  # (B,); a picture with nothing to compare keeps point samples
+    sigma = torch.tensor((float("nan"),) + widths, device=choice.device)[choice]
+    per_pixel = choice.index_select(0, found.image_index)
+    expected = torch.stack(candidates).gather(0, per_pixel[None, :, None].expand(1, -1, 3))[0]
+    usable = usable | (per_pixel == 0)  # point samples keep every interior pixel, as before
+    return Footprint(expected, usable, sigma, fine, parent, scale)
+
+
+def linear_light_direction(expected: torch.Tensor) -> torch.Tensor:
+    """How each predicted sRGB colour (P, 3) moves when white light is added to it in linear light ->
+    directions (P, 3), the part orthogonal to the colour itself (its brightness is fitted on its own)
+    of a unit vector.
+
+    Every physically based engine shades in linear light: a specular highlight, Workbench's studio
+    light or light bounced off the rest of the scene adds to the linear value. In sRGB that moves each
+    channel by the slope of the sRGB curve at its linear value: steep on dark channels, so it lifts a
+    saturated colour's darkest channel most (a deck chair's blue stripes) and is no longer white; on a
+    grey pixel it is the brightness, and the direction returned is short there."""
+    linear = torch.where(expected <= 0.04045, expected / 12.92, ((expected.clamp_min(0.0) + 0.055) / 1.055) ** 2.4)
+    slope = torch.where(linear <= 0.0031308, torch.full_like(linear, 12.92),
+                        1.055 / 2.4 * linear.clamp_min(0.0031308) ** (1.0 / 2.4 - 1.0))
+    slope = F.normalize(slope, dim=1)
+    brightness = F.normalize(expected, dim=1, eps=1e-6)
+    return slope - (slope * brightness).sum(1, keepdim=True) * brightness
+
+
+def take_off_linear_light(residual: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor,
+                          shape: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals (P, 3) (brightness already taken off) with light added in linear light
+    (`linear_light_direction`: a highlight, bounced light, a path tracer's noise) taken off where they
+    vary along it more than across it, smoothly (fully at `LINEAR_LIGHT_RATIO`), over windows of
+    `LINEAR_LIGHT_SIGMA` px; elsewhere the mark keeps all its colour. Returns the residuals and the
+    direction taken off at each pixel, scaled by the square root of how much was (for the template's
+    gain). Looks at the picture and the original only, never at a key."""
+    from ..models.spread import local_mean
+
+    added = linear_light_direction(expected)
+    unit = F.normalize(added, dim=1, eps=1e-6)
+    across = torch.cross(F.normalize(expected, dim=1, eps=1e-6), unit, dim=1)
+    along_added = local_mean((residual * unit).sum(1) ** 2, pixel, shape, LINEAR_LIGHT_SIGMA)
+    along_across = local_mean((residual * across).sum(1) ** 2, pixel, shape, LINEAR_LIGHT_SIGMA)
+    weight = (1.0 - LINEAR_LIGHT_RATIO * along_across / along_added.clamp_min(1e-12)).clamp(0.0, 1.0)
+    weight = weight * ((added * added).sum(1) / LINEAR_LIGHT_DISTINCT ** 2).clamp(max=1.0)
+    residual = residual - weight[:, None] * (residual * unit).sum(1, keepdim=True) * unit
+    return residual, weight.sqrt()[:, None] * unit

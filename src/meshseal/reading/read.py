@@ -1,0 +1,116 @@
+"""One picture's evidence before any decision: the picture loaded, its object found, its camera taken
+from its metadata or found by registration (informed methods), and the method's evidence read under
+that camera; blind methods read the object alone. `second_look` may read a registered picture again."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import MeshsealError
+from .framing import box_from_points, boxes_from_mask, inner_picture, object_mask
+from .pictures import camera_from_metadata, load_picture, picture_name
+
+MIN_OBJECT_PIXELS = 64  # fewer object pixels than this: nothing to read
+
+
+@dataclass
+class Reading:
+    """One picture's evidence before the decision (`Method.decide`): matched-filter cell sums or logits."""
+
+    evidence: torch.Tensor
+    box: tuple[float, float, float]
+    camera: str | None
+    registration_iou: float | None
+    found: object = None  # the Cameras used to un-render (informed methods)
+    tries: int = 1  # what the decision multiplies the p-value by for the cameras a second look could try
+    second_look: tuple = ()  # registered: (picture, mask, Registration.alternatives), until `second_look.look_again`
+    object_mask: torch.Tensor | None = None  # camera from metadata: the picture's object (H, W) bool, for `why_not`
+
+
+class Reader:
+    """Reads pictures for one `methods.Method`, keeping what it worked out for the last original."""
+
+    def __init__(self, method):
+        self.method = method
+        self._cpu_of: tuple | None = None  # (prepared original, its copy on the CPU for registration)
+
+    @property
+    def device(self) -> torch.device:
+        return self.method.device
+
+    def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None) -> Reading:
+        """One picture's evidence; `original` from `Method.prepare`, None for blind methods. The camera
+        comes from `camera` (one `Cameras`, canonical frame: it overrides the rest), else the picture's
+        metadata (unless `register`), else registration assuming a vertical field of view `fov_y`."""
+        pixels, alpha, camera_text = load_picture(image)
+        given = camera is not None
+        from_metadata = original is not None and camera_text is not None and not register and not given
+        if alpha is not None:
+            pixels = pixels * alpha[..., None]  # transparent pixels -> black, as in training renders
+            mask, background = alpha, np.zeros(3, dtype=np.float32)
+        else:  # the silhouette's edge matters only to registration
+            inner = None if (given or from_metadata) else inner_picture(pixels)
+            if inner is not None:  # a picture within a picture (a screenshot): read the inner one, in its own frame
+                top, bottom, left, right = inner
+                pixels = np.ascontiguousarray(pixels[top:bottom, left:right])
+            mask, background = object_mask(pixels, trim=not (given or from_metadata))
+        if int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
+            what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"
+            raise MeshsealError(f"{picture_name(image)}: no object found (the picture is {what})")
+        tensor = torch.from_numpy(np.ascontiguousarray(pixels)).permute(2, 0, 1)[None].to(self.device)
+        if from_metadata:
+            camera = camera_from_metadata(camera_text, self.device, picture_name(image))
+        if camera is not None:  # the known camera says where the object is: no need to search for it
+            from ..render import clip_to_screen
+
+            height, width = pixels.shape[:2]
+            corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
+            box = tuple(float(v) for v in box_from_points(corners.reshape(-1, 2), height, width)[0])
+            evidence = self.method.evidence(original, tensor.clamp(0, 1), camera)
+            if from_metadata:  # kept for `why_not`: does the picture show this mesh where its camera says?
+                return Reading(evidence, box, "metadata", None, camera,
+                               object_mask=torch.from_numpy(np.ascontiguousarray(mask > 0.5)))
+            return Reading(evidence, box, "given", None, camera)
+        background_tensor = torch.tensor(background, dtype=tensor.dtype)
+        if original is None:
+            box = tuple(float(v) for v in boxes_from_mask(torch.from_numpy(mask)[None])[0])
+            return Reading(self.method.blind_evidence(pixels, mask, background_tensor), box, None, None)
+        from .registration import register_with_masks
+
+        guesses, recut = self._object_guesses(pixels, mask, alpha, original)
+        with torch.enable_grad():
+            found = register_with_masks(self.on_cpu(original), tensor[0].cpu(), guesses, background_tensor.cpu(),
+                                        fov_y=fov_y, recut=recut)
+        camera = found.camera.to(self.device)
+        evidence = self.method.evidence(original, tensor.clamp(0, 1), camera)
+        second_look = (tensor.clamp(0, 1).cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
+        return Reading(evidence, tuple(float(v) for v in found.box), "registered", found.iou, camera,
+                       second_look=second_look)
+
+    def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original):
+        """The object's pixels as registration should try them, and how to cut them again from a
+        registered silhouette (None where the picture's alpha channel gives them): the plain-background
+        `mask`, and where the background is busy (`segmentation.busy_background`) a cut guided by the
+        original's colours too, first, unless the two agree; `segmentation.recut` of the picture (a
+        dark object on a dark backdrop loses parts of it to the plain-background mask, too)."""
+        from .segmentation import GUESSES_AGREE, busy_background, guided_object_mask, mask_iou, recut
+
+        guesses = [mask]
+        if alpha is None and busy_background(pixels):
+            guided = guided_object_mask(pixels, self.on_cpu(original))
+            if int(guided.sum()) >= MIN_OBJECT_PIXELS and mask_iou(guided, mask) < GUESSES_AGREE:
+                guesses.insert(0, guided)
+        again = None if alpha is not None else (lambda silhouette: recut(pixels, silhouette))
+        return [torch.from_numpy(np.ascontiguousarray(g)) for g in guesses], again
+
+    def on_cpu(self, original):
+        """The prepared original on the CPU, where registration runs whatever the model's device (its
+        many small Gauss-Newton steps are written and tested for the CPU); kept for the next picture."""
+        if original.positions.device.type == "cpu":
+            return original
+        if self._cpu_of is None or self._cpu_of[0] is not original:
+            self._cpu_of = (original, original.to("cpu"))
+        return self._cpu_of[1]

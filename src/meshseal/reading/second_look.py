@@ -1,0 +1,75 @@
+"""A second look at a registered picture whose mark was not found: the camera sharpened on the
+reading's own residual, then the registration's next-best views, the p-value paying for every try."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from .read import Reading
+
+SHARPEN_ROUNDS = 2  # a second look sharpens the registered camera again (light refitted) where the first round's reading hints at a mark
+LOOK_AGAIN_BELOW = 0.05  # a second look finishes the other views where the first reading's p-value is under this, else those whose rough reading's is
+
+
+def look_again(reader, reading: Reading, original, key=None, expect=None, search: bool = True) -> Reading:
+    """A registered reading, looked at again where its mark is not found: first under the registered
+    camera sharpened on the reading's own residual (`registration.sharpen`: a picture whose texture
+    aliases loses its mark to a tenth of a pixel of pose error), then under the registration's
+    next-best views (`Registration.alternatives`: a near-symmetric shape's twin views fit its
+    silhouette and texture alike, and only the keyed mark tells them apart), keeping the camera
+    whose reading is likeliest marked. Where the registered camera's reading already hints at a
+    mark (p-value under LOOK_AGAIN_BELOW: a twin view of a symmetric asset still reads part of the
+    mark) each alternative is finished (refined on the texture) and read; else each is first read
+    as refined on its silhouettes alone, and finished only where that rough reading hints at a
+    mark, so that unmarked pictures pay little for it. Sharpening runs again (light refitted at the
+    sharpened camera) where its first reading hints at a mark, SHARPEN_ROUNDS times at most. The
+    p-value pays for all of it (Bonferroni over three stages, each given a third: the registered
+    camera, the sharpened ones, the alternatives): x3 at the registered camera, x3R at a sharpened
+    one of R rounds, x3K at the best of K alternatives (x2 and x2R without alternatives), so that a
+    reading's p-value stays valid however the camera was picked (rough readings only decide what
+    to finish). Other readings, and all of them with `search` False (pooling), come back as they
+    are, without what a second look needs."""
+    from .. import payload
+    from .registration import sharpen, silhouette_iou
+
+    if not reading.second_look:
+        return reading
+    picture, mask, alternatives = reading.second_look
+    method = reader.method
+    if not search or not method.second_look:
+        return replace(reading, second_look=())
+    stages = 3 if alternatives else 2
+    first = replace(reading, second_look=(), tries=stages)
+    decision = method.decide([first], key, expect)
+    if decision.detected:
+        return first
+    hinted = decision.p_value <= LOOK_AGAIN_BELOW
+    best, best_p = first, decision.p_value
+
+    on_cpu, on_device = reader.on_cpu(original), picture.to(reader.device)
+
+    def under(camera, tries: int) -> tuple[Reading, float]:
+        camera = camera.to(reader.device)
+        other = replace(first, evidence=method.evidence(original, on_device, camera), found=camera, tries=tries)
+        return other, method.decide([other], key, expect).p_value
+
+    camera = reading.found.to("cpu")
+    for _ in range(SHARPEN_ROUNDS):  # each round refits the light at the camera the last one found
+        camera = sharpen(on_cpu, camera, picture, mask[None].float())
+        sharpened, p_value = under(camera, stages * SHARPEN_ROUNDS)
+        if p_value < best_p:
+            best, best_p = sharpened, p_value
+        if payload.detected(p_value) or p_value > LOOK_AGAIN_BELOW:
+            break
+    for alternative in alternatives:
+        if payload.detected(best_p):
+            break  # every stage is paid for, tried or not
+        if not (hinted or alternative.finished):
+            rough = replace(first, evidence=method.evidence(original, on_device, alternative.rough().to(reader.device)))
+            if method.decide([rough], key, expect).p_value > LOOK_AGAIN_BELOW:
+                continue
+        other, p_value = under(alternative.finish(), stages * len(alternatives))
+        if p_value < best_p:
+            best, best_p = other, p_value
+    # Only the kept camera's silhouette overlap is reported: the others are never rendered for it.
+    return best if best is first else replace(best, registration_iou=silhouette_iou(on_cpu, best.found.to("cpu"), mask))
