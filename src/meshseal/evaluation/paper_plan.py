@@ -161,7 +161,7 @@ def configure(base, settings: dict, bits: int | None, budget: int, seed: int,
     if bits is not None:
         config.model.n_bits = bits
     config.train.steps, config.train.val_every, config.train.time_limit_minutes = budget, budget, None
-    if config.model.decoder == "surface":  # nothing to train: the code is drawn from the seed
+    if config.model.method == "surface":  # nothing to train: the code is drawn from the seed
         config.model.chips, config.model.pattern_seed = (32 if config.model.n_bits <= 16 else 64), seed
         config.train.steps = config.train.val_every = 0
     config.train.val_meshes = 8  # a sanity check at the end; the evaluation below is the figure

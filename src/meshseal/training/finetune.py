@@ -27,11 +27,12 @@ import torch.nn.functional as F
 
 from ..errors import MeshsealError
 from ..mesh import Material, Mesh
+from ..methods import method_for
 from ..models import WatermarkModel
 from ..models.io import save_model, save_tensors
+from ..reading.framing import frame
 from ..reading.relight import uv_maps
 from ..render import Cameras, MeshBatch, make_renderer
-from ..reading.framing import frame
 from ..render.views import sample_views
 
 BACKGROUND = (0.0, 0.0, 0.0)  # as training renders
@@ -109,8 +110,6 @@ def build_cache(model: WatermarkModel, dataset, cfg: FinetuneConfig, folder: Pat
 
 def decoder_input(model: WatermarkModel, item: dict, pictures: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """What the decoder reads from pictures (K, 3, H, W) of an item taken with `cameras`."""
-    from ..methods import method_for
-
     if method_for(model).informed:
         original = MeshBatch.from_tensors(item["positions"][None], item["normals"][None], item["uvs"][None],
                                           item["faces"][None], item["texture"][None])
@@ -142,7 +141,7 @@ def accuracy(model: WatermarkModel, inputs: torch.Tensor, messages: torch.Tensor
 def finetune(model: WatermarkModel, train_set, test_set, cfg: FinetuneConfig, out: Path, log=print) -> dict:
     """Steps 1-3 of the module docstring; returns the figures written to OUT/finetune.json."""
     if model.decoder is None or not any(p.requires_grad for p in model.decoder.parameters()):
-        reader = "a matched filter" if model.config.decoder == "matched" else f"the '{model.config.decoder}' reader"
+        reader = f"the {method_for(model).name} method's reader"
         raise MeshsealError(f"this model's decoder has no learned parameters ({reader}): there is nothing "
                             "to fine-tune; it reads every engine as it is (docs/renderers.md)")
     out.mkdir(parents=True, exist_ok=True)
