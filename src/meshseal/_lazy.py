@@ -5,7 +5,7 @@ line does, to build its parser) does not import torch, numba or trimesh.
 import `package.submodule` and return its `name` the first time it is asked for (".submodule:other" returns
 the submodule's `other` under the name `name`). Where a public function
 has the name of its own submodule (`meshseal.render.interpolate`, `meshseal.data.build`), the package's
-attribute stays the function, as it was when `__init__` imported everything at once: the import system's
+attribute stays the function, as an eager import in `__init__` would leave it: the import system's
 recording of the submodule on the package is skipped (the submodule stays in `sys.modules`).
 """
 

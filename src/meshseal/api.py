@@ -1,6 +1,6 @@
 """The public API: `wm = meshseal.load(); marked = wm.embed(mesh, "ab42"); result = wm.detect(picture, mesh)`.
 
-`Watermarker` is a facade over one `methods.Method` (the scheme) and a `reading.Reader` (pictures in,
+`Watermarker` is a facade over one `methods.Method` (the scheme) and a `reading.read.Reader` (pictures in,
 camera from metadata or registration, a second look): it parses messages and keys, applies a
 visibility budget, and explains a picture that reads no mark."""
 

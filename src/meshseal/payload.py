@@ -9,16 +9,15 @@ Layout for a model of N raw bits (see docs/payload.md):
     N = 64: BCH(63, 36), t = 5, extended distance 12 -> 32 payload bits
     N = 32: BCH(31, 16), t = 3, extended distance 8  -> 12 payload bits (legacy learned model)
 
-The BCH code is galois's, imported on first use, in pure-Python field arithmetic (its numba JIT costs
-4 s per process) and with the pinned polynomials taken as given: about 0.7 s to import and build the
-code, then 2 ms per decode. bchlib (C, 1 ms
-import) was measured too but only takes whole data bytes, so at t = 5 in GF(2^6) it holds 32 data
-bits instead of 36 and the 4-bit header would eat 4 payload bits.
+The BCH code is galois's, imported on first use, in pure-Python field arithmetic (its numba JIT would
+cost every process a compile) and with the pinned polynomials taken as given, which skips their
+verification. bchlib (C) only takes whole data bytes, so at t = 5 in GF(2^6) it would hold 32 data
+bits instead of 36 and the 4-bit header would eat 4 payload bits. Timings: docs/payload.md.
 
 The key (None = the public default key) derives, through SHAKE-256, the position permutation, the
 keystream and `key_seed` for the model's own pattern: without the key the bits look random and a
-message cannot be read. A decoded message means nothing on its own (0.4 % of random 64-bit words and
-1 % of 32-bit ones decode to a valid message): report it only when a p-value is at most `FPR`.
+message cannot be read. A decoded message means nothing on its own (random words decode to a valid
+message now and then; docs/payload.md gives the rate): report it only when a p-value is at most `FPR`.
 """
 
 from __future__ import annotations
@@ -76,7 +75,7 @@ def _code(n_bits: int):
     import galois
 
     schema = _schema(n_bits)
-    # GF(2) first, in pure Python: built by default, it JIT-compiles a polynomial evaluation (1 s).
+    # GF(2) first, in pure Python: built by default, it JIT-compiles a polynomial evaluation.
     galois.GF(2, compile="python-calculate")
     field = galois.GF(2 ** schema.m, irreducible_poly=schema.primitive_poly, compile="python-calculate", verify=False)
     code = galois.BCH(2 ** schema.m - 1, d=schema.d, extension_field=field)
@@ -251,10 +250,9 @@ def _message(word: int, schema: _Schema) -> tuple[str | int | None, str | None, 
 def decode(soft, key: str | bytes | None = None) -> Decoded:
     """Read the message from soft bits (N,) under `key`: the signs, hard-decoded (bit '1' where > 0).
 
-    Soft (Chase) retries over the 4 least reliable bits were measured and left out: they turn more
-    failures into messages but many of those into wrong ones (300 seeded draws, N = 64, right / wrong
-    / failed: mu = 1.25 hard 98 / 2 / 200, Chase 186 / 39 / 75; mu = 1.5 hard 228 / 1 / 71, Chase
-    283 / 4 / 13), and a wrong message is worse than none."""
+    No soft (Chase) retries over the least reliable bits: they turn more failures into messages but
+    many of those into wrong ones (docs/payload.md has the table), and a wrong message is worse than
+    none."""
     z = _as_soft(soft)
     if z.ndim != 1:
         raise MeshsealError(f"soft bits must be one vector, got shape {tuple(z.shape)}")

@@ -75,15 +75,15 @@ def shown_texture_psnr(marked: torch.Tensor, original: torch.Tensor, used: torch
 
 MAX_FLIP = 0.03  # `meshseal embed`'s default visibility budget: the mark's mean FLIP over the object's pixels
 BUDGET_VIEWS = 4  # ... in renders from this many seed views (`seed_renders`), as its report measures it
-MIN_STRENGTH = 0.5  # a FLIP budget lowers the strength no further (at 0.5 saved pictures still read fully)
+MIN_STRENGTH = 0.5  # a FLIP budget lowers the strength no further (the weakest mark docs/mark.md shows saved pictures reading at)
 FLIP_ROUNDS = 4  # markings a FLIP budget tries at most
 
 
 def strength_within(mark: Callable[[float], Any], flip: Callable[[Any], float], strength: float, max_flip: float
                     ) -> tuple[Any, float, float]:
     """The strength lowered from `strength` until the mark's FLIP is at most `max_flip`: `mark(s)` marks
-    at strength s, `flip(marked)` measures it. FLIP grows about as strength^0.7 near the default
-    (teapot: 0.0266 / 0.0290 / 0.0311 at 0.8 / 0.9 / 1), so one step usually lands just under the budget;
+    at strength s, `flip(marked)` measures it. Each step assumes FLIP grows as strength^0.7 (its power
+    law near the default, docs/mark.md) and aims just under the budget, so one step usually suffices;
     at most `FLIP_ROUNDS` markings, never below `MIN_STRENGTH`. A FLIP of NaN (no view shows the object's
     interior, nothing to see) keeps the strength. Returns (marked, strength, FLIP)."""
     for round_ in range(FLIP_ROUNDS):

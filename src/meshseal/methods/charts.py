@@ -28,7 +28,7 @@ POINT_TEXELS = 1.0  # a palette face's UVs lie within this many texels of each o
 GUTTER = 4  # texels between two colours' blocks, filled half by each: the first mip levels keep both
 MAX_SIDE = 4096  # the atlas's largest side; its density is lowered to fit
 # A pixel of a 256^2 view of a radius-1 object 3.5 away with a 60-degree field: `models.spread.PIXEL_AT_OBJECT`
-# to 0.07 %, kept as the charts were measured with it (the exact value changes 4 of the test split's 35 layouts).
+# rounded. The rounded value stays because it fixes the chart layouts (the exact one would move a few of them).
 STANDARD_PIXEL = 1 / 63.3
 TEXELS_PER_PIXEL = 2.0  # at most this many chart texels per pixel of that view (more is never seen)
 

@@ -10,9 +10,9 @@ just-noticeable-difference mask. A picture is read with no mesh: the object's co
 range is the object's x range, the chroma is high-passed along rows (the mark is constant down a
 column, the host is not), averaged per cell and correlated with each bit's code. Nothing is learned.
 
-What limits it (docs/training.md): a texel must paint one x, so textures shared across the object
-(spherical UVs on shapes that are not star-shaped, mirrored or tiled UVs) blur the code; and the
-cameras must keep the seed's azimuth: a view from the side shows the code edge-on.
+What limits it (docs/mark.md, "The blind surface code"): a texel must paint one x, so textures
+shared across the object (spherical UVs on shapes that are not star-shaped, mirrored or tiled UVs) blur
+the code; and the cameras must keep the seed's azimuth: a view from the side shows the code edge-on.
 """
 
 from __future__ import annotations

@@ -108,8 +108,8 @@ def object_mask(image: np.ndarray, threshold: float = 0.03, trim: bool = True) -
     Pixels that differ from the background (`background_plane`) by more than `threshold`, cleaned up
     by keeping the largest connected components that together hold 99 % of the area, then trimmed to
     the pixels the object covers at least half (`half_covered`), as a renderer's hard raster marks
-    them: the antialiased rim that any difference picks up made silhouettes half a pixel too wide, which
-    registration then matched (experiments/registration_conditions.py, docs/reading.md). `trim`
+    them: the antialiased rim that any difference picks up would make silhouettes half a pixel too wide,
+    which registration would then match (experiments/registration_conditions.py, docs/reading.md). `trim`
     False skips that last step (a reader that only counts the object's pixels).
     """
     from scipy import ndimage

@@ -47,7 +47,7 @@ FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-
 RECUT_ROUNDS = 2  # `register_with_masks`: at most this many guesses in a row cut again from a registered silhouette
 RECUT_BELOW_IOU = 0.9  # ... only where the registered silhouette's IoU with its own guess is under this (a mask it disagrees with)
 MIN_RECUT_PIXELS = 64  # ... a cut smaller than this is not registered
-ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (registered: 0.01-0.03; a wrong view: about 2)
+ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (a registered view fits far under it, an unrelated one near 2 a band)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
 RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
 RETRY_KEEP = 12
@@ -291,8 +291,8 @@ def _screen_flow(start: Cameras, delta: torch.Tensor, points: torch.Tensor, heig
     of `_moved`'s six coordinates, at `delta` (B, 6) (or (1, 6) for all) from `start` (B cameras):
     (6, B, N, 2) pixels. Analytic: the points in the moved camera's frame, their derivatives (a turn
     by the exponential map, to first order in the rotation already made; a shift) through the
-    perspective division. The flow of both Gauss-Newton stages; it replaced central differences of 12
-    projections, 2.3 times slower, which agree to 1e-4 of the flow."""
+    perspective division. The flow of both Gauss-Newton stages: exact, and one pass instead of the
+    twelve projections central differences would take."""
     n_batch = len(start)
     delta = delta.reshape(-1, 6).expand(n_batch, 6)
     focal = height / 2 / math.tan(math.radians(start.fov_y) / 2)
@@ -438,13 +438,12 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     (coarse to fine: wider basins first); the light is refitted before each level (on the pixels
     `light_from` says, see `reading.relight.relit_residual`), and a level blurred
     by sigma > TEXTURE_SCALE_SIGMA pixels runs on a copy shrunk so that its blur is that many pixels
-    (4x fewer pixels to render at sigma 4, as accurate). The Jacobian is the band-passed picture's
-    gradient times the analytic screen flow of each pose coordinate (`_flow_jacobian`, one render per
-    iteration). It replaced central differences of rendered
-    pictures (12 renders an iteration), whose noise on fine texture stopped many refinements 0.5-2 px
-    short: on 24 test pictures success went 0.54 -> 0.83 and the time halved. A step that does not
-    lower the cost is halved twice before the level stops. Works on a copy of at most WORKING_SIZE
-    pixels a side."""
+    (fewer pixels to render, as accurate). The Jacobian is the band-passed picture's gradient times the
+    analytic screen flow of each pose coordinate (`_flow_jacobian`, one render per iteration), not
+    central differences of rendered pictures, which cost twelve renders an iteration and whose noise on
+    fine texture stops refinements short of the pose (docs/reading.md, "Alternatives measured"). A
+    step that does not lower the cost is halved twice before the level stops. Works on a copy of at
+    most WORKING_SIZE pixels a side."""
     picture, mask = _working_size(picture, mask)
     for sigma in sigmas:
         scale = min(1.0, TEXTURE_SCALE_SIGMA / sigma)
@@ -555,8 +554,7 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
     and with it the cost is lower off the true pose than at it; on the flat half the fit barely sees
     the pose error, but it has fewer and less varied pixels, and it loses on some meshes that the
     all-pixel fit reads. Keeping the start guards against runs that drift off a good pose. The second
-    run is skipped where the first plainly converged (`experiments/texture_stage.py --retry`: on 60
-    test pictures it then changed no success and saved a quarter of a second on half of them)."""
+    run is skipped where the first plainly converged: there it would change nothing and only cost time."""
     picture, mask = _working_size(picture, mask)
     results = [camera, refine_on_texture(mesh, camera, picture, mask, light_from="all")]
     misfits = [texture_misfit(mesh, c, picture, mask) for c in results]
@@ -571,8 +569,8 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
     unfiltered, the light fitted once at `camera`), best explains the picture (1, 3, H, W) over its
     interior pixels. A point-sampled texture a little finer than the pixels makes the picture alias:
     a tenth of a pixel moves each pixel to other texels, the texture leaks into the residual the
-    reading subtracts and drowns the mark (a test picture registered 0.08 px off read 0.47 of its
-    bits, 1.0 at the true camera, its residual ten times larger there). The texture stage's band-passed
+    reading subtracts and drowns the mark, even where the texture stage calls the camera registered
+    (docs/reading.md, stage 7). The texture stage's band-passed
     alignment cannot see that, and neither can image gradients (their Jacobian points elsewhere):
     this is a pattern search, each of the six coordinates of `_moved` by +-step in one batch of
     renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
@@ -716,8 +714,8 @@ def _refine_candidates(mesh: MeshBatch, cameras: Cameras, levels, margin: float 
         refined = _refine_silhouettes(mesh, refined, levels[COMPARE_SIZE], sigma)
     # Symmetric shapes leave several views with the same silhouette: the texture tells them apart. The
     # best-scored candidate stays unless another fits the texture clearly better: a candidate a few
-    # degrees off fits the fine bands as badly as a wrong view (it was the right one in 55 of 60 test
-    # pictures, and a plain minimum threw it away in 9 of them).
+    # degrees off fits the fine bands as badly as a wrong view, so a plain minimum of the misfit would
+    # often throw the right one away.
     # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
     target, target_mask, _ = levels[SEARCH_SIZE]
     overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
@@ -783,8 +781,8 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     alternatives = tuple(Alternative(refined[[i]], on_silhouettes, on_texture) for i in others[:ALTERNATIVES])
     if texture_refine and RETRY_KEEP:
         # 4. A registration the texture does not confirm tries more views, nearer each other: a view
-        # within 5-7 degrees of the truth can rank far down the first score and lose its place among
-        # the first few to a higher-scored one 20 degrees off.
+        # a few degrees from the truth can rank far down the first score and lose its place among
+        # the first few to a higher-scored one further off.
         full, full_mask = picture[None].clamp(0, 1), mask[None].float()
         misfit = texture_misfit(mesh, camera, full, full_mask, PICK_SIGMAS)
         more = _distinct(scores, directions, RETRY_KEEP, RETRY_ANGLE, away_from=best) if misfit > RETRY_ABOVE else []

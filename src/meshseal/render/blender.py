@@ -9,7 +9,8 @@ brightness, or no lamp and only world light from one of Blender's bundled studio
 in linear light and applies a view transform (Standard or AgX), so its pictures differ from ours in
 tone and soft shadows as a user's would: that difference is what detection has to survive.
 
-All views of one call render in one Blender process (`blender_worker`), which starts in about a second.
+All views of one call render in one Blender process (`blender_worker`): its start-up is paid once a call,
+not once a view.
 """
 
 from __future__ import annotations

@@ -132,8 +132,8 @@ def clip_to_screen(clip: torch.Tensor, height: int, width: int) -> torch.Tensor:
 def gather_corners(values: torch.Tensor, batch: torch.Tensor, vertex: torch.Tensor) -> torch.Tensor:
     """values (B, V, C) (or (1, V, C), shared) at the corners vertex (P, 3) of elements batch (P,) -> (P, 3, C).
 
-    One index_select on the flattened table: its backward is an index_add, about twice as fast on the
-    CPU as the accumulating index_put of advanced indexing.
+    One index_select on the flattened table: its backward is an index_add, cheaper on the CPU than the
+    accumulating index_put of advanced indexing (benchmarks/render.py times the renderer).
     """
     n_vertices, channels = values.shape[1], values.shape[2]
     index = vertex if values.shape[0] == 1 else batch.unsqueeze(1) * n_vertices + vertex

@@ -49,7 +49,7 @@ def fit_point_light(seen: torch.Tensor, albedo: torch.Tensor, position: torch.Te
 def _best_light(y, u, position, normal, candidates):
     """Least-squares fit of y ~ a * u + d * u * lambert(candidate) per channel for each candidate light
     position (K, 3); returns (residual, a (3,), position (3,), d (3,)) of the best one. Every sum over
-    pixels is a (P, K) matrix product, so hundreds of candidates cost a few milliseconds."""
+    pixels is a (P, K) matrix product: every candidate is scored at once, not in a loop."""
     kc, kl, kq = ATTENUATION
     # The (P, K) terms are built in place, in the same order of operations as the plain expressions
     # (squared = |c|^2 - 2 p.c + |p|^2, lit = max(n.c - n.p, 0) / distance / (kc + kl distance + kq
