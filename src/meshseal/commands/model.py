@@ -570,6 +570,6 @@ def run_models(args) -> int:
         for m in models:
             kind = "informed (needs the original mesh)" if m["informed"] else "blind"
             payload = f"{m['payload_bits']} payload bits" if m["payload_bits"] is not None else "raw bits only"
-            print(f"{m['name']}: {m['n_bits']} raw bits, {payload}, {m['strategy']}, {kind}"
+            print(f"{m['name']}: method {m['method']}, {m['n_bits']} raw bits, {payload}, {m['strategy']}, {kind}"
                   f"{', calibrated p-values' if m['calibrated'] else ''}")
     return 0
