@@ -37,6 +37,10 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=256, help="render size of the test pictures (default 256)")
     parser.add_argument("--register-meshes", type=int, default=100,
                         help="informed models: test meshes for the end-to-end row with registration (slow)")
+    parser.add_argument("--attacks", default=None,
+                        help="informed models: the road-to-the-web table, as `meshseal eval --attacks` (comma-separated "
+                             "names of meshseal.evaluation.attacks without a change of camera)")
+    parser.add_argument("--attack-meshes", type=int, default=100, help="test meshes for the --attacks table")
     args = parser.parse_args()
 
     source = args.run / "model.safetensors"
@@ -76,6 +80,14 @@ def main() -> int:
         torch.manual_seed(args.seed)
         registered = evaluate_registered(model, dataset, args.register_meshes, args.seed, args.size, "seed")
         print("registered", json.dumps(registered), flush=True)
+    attacked = None
+    if method.informed and args.attacks:
+        from meshseal.evaluation.attacks import parse
+
+        torch.manual_seed(args.seed)  # marked as `meshseal embed` marks, saved, attacked, read with the camera known
+        attacked = evaluate_registered(model, dataset, args.attack_meshes, args.seed, args.size, "seed", views=1,
+                                       register=False, attacks=parse(args.attacks))
+        print("attacks", json.dumps(attacked), flush=True)
     stats = json.loads(subprocess.run([sys.executable, "-m", "meshseal.cli", "data", "stats", str(args.data), "--json"],
                                       capture_output=True, text=True, check=True).stdout)
     WEIGHTS.mkdir(parents=True, exist_ok=True)
@@ -106,7 +118,8 @@ def main() -> int:
         f"meshes, {stats.get('n_textures')} real texture images, {stats.get('n_categories')} categories "
         "(Debian packages; see the dataset's manifest for sources and licenses).",
         f"- Card written by: `python tools/ship_model.py --run {args.run} --data {args.data} --name {args.name} "
-        f"--views {args.views} --size {args.size} --seed {args.seed} --register-meshes {args.register_meshes}`",
+        f"--views {args.views} --size {args.size} --seed {args.seed} --register-meshes {args.register_meshes}"
+        + (f" --attacks {args.attacks} --attack-meshes {args.attack_meshes}" if args.attacks else "") + "`",
         "",
         (f"## Test split ({args.views} view(s) per mesh, " if surface else
          f"## Test split ({next(iter(rows.values()))['n_meshes']} meshes x {args.views} views, ")
@@ -140,6 +153,16 @@ def main() -> int:
                   f"{palette['flip_object']:.4f}): such a face shows one texel wherever it is seen, so `meshseal embed` "
                   "first gives those faces charts of their own (`methods.charts`), filled with the colour they showed, "
                   "and the mark lies there as on any UV-mapped surface."]
+    if attacked is not None:
+        from meshseal.commands.model import attack_table
+
+        lines += ["", f"## The road to the web ({attacked['n_meshes']} test meshes x 1 seed view, {args.size}^2, camera known)",
+                  "", f"Each mesh marked as `meshseal embed` marks it (object PSNR {attacked['psnr_object']:.2f} dB, object "
+                  f"FLIP {attacked['flip_object']:.4f}, 95th percentile {attacked['flip_object_p95']:.4f}; texture PSNR over the "
+                  f"shown texels {attacked['psnr_texture_shown']:.2f} dB), rendered, saved as 8-bit PNG, put through each attack (Pillow's "
+                  "encoders with their defaults: JPEG 4:2:0) and read with the camera known, as `meshseal eval --data "
+                  f"{args.data} --meshes {args.attack_meshes} --size {args.size} --attacks {args.attacks} --model {args.name}` "
+                  "prints it; detected at FPR 1e-6.", "", attack_table(attacked["attacks"])]
     if registered is not None:
         pose = registered["pose_error_px"]
         lines += ["", f"End to end as `meshseal detect` runs it on a picture without metadata, on the first "

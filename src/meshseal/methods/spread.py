@@ -22,7 +22,7 @@ PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has
 
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
-                    grids: tuple[int, ...] | None = None) -> torch.Tensor:
+                    grids: tuple[int, ...] | None = None, compression: bool = True) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
     original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
     `grids` (default the model's own grid alone): the cell grids to read, their sums side by side
@@ -49,11 +49,17 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         pixel = found.fragments.pixel.index_select(0, found.keep)
         sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
         expected = found.expected if sampled is None else sampled.expected
+        if compression:  # the prediction as the picture's codec saved it (`reading.compression`)
+            from ..reading.compression import recompressed
+
+            expected, _ = recompressed(image, expected, pixel)
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
         textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
         usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
         colour = encoder.colour.to(image)
-        if brightness:
+        config = model.config
+        fit = config.read_brightness if brightness else -1.0
+        if fit == 0.0:
             # Each pixel's own brightness against the prediction (a shadow, one of two coincident sheets
             # lit from behind, a tone curve): taken off along the predicted colour, so the residual
             # keeps the part of the mark orthogonal to it, and the template scales by what is left.
@@ -65,11 +71,21 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             along = (residual * colour).sum(1)
             kept = 1.0 - (direction * colour).sum(1) ** 2  # the mark keeps this much of its colour ...
             gain = gain * (kept - (taken * colour).sum(1) ** 2) / kept.clamp_min(1e-6)  # ... and loses this
+        elif fit > 0.0:
+            # The brightness as a smooth field (Gaussian sigma `fit` px): a mark along the predicted
+            # colour (grey) that changes from cell to cell is not taken for a change of brightness.
+            from ..models.spread import local_mean
+
+            ratio = (found.seen * expected).sum(1) / (expected * expected).sum(1).clamp_min(1e-6)
+            ratio = local_mean(ratio.clamp(0.0, 3.0), pixel, (n_images, height, width), fit)
+            along = ((found.seen - ratio[:, None] * expected) * colour).sum(1)
+            gain = gain * ratio
         else:
             along = ((found.seen - expected) * colour).sum(1)
         whitened = torch.zeros_like(along)
         if bool(usable.any()):
-            whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **(whitening or {}))
+            options = {"highpass": config.read_highpass, "window": config.read_window} | (whitening or {})
+            whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **options)
         whitened = whitened * gain
         grids = grids or (encoder.chips,)
         point = torch.ones(n_images, dtype=torch.bool) if sampled is None else sampled.sigma.isnan()

@@ -42,6 +42,9 @@ class ModelConfig:
     activity_window: int = 5  # spread: window of the just-noticeable-difference mask, in texels
     activity_floor: float = 0.3  # spread: the mask's floor (flat areas still carry this much)
     pattern_seed: int = 0  # spread: seed of the cell-to-bit assignment and the cell signs
+    read_highpass: float = 1.5  # spread reading: the residual's slow part taken off (Gaussian sigma, px; `models.spread.whiten`)
+    read_window: float = 2.0  # spread reading: the window of the residual's local variance (sigma, px)
+    read_brightness: float = 0.0  # spread reading: the brightness fit's window (sigma, px; 0: each pixel's own; < 0: none)
     vertex_encoder: str = "pointnet2"  # pointnet (max pooling) | pointnet2 (average pooling)
     vertex_width: int = 64
     normal_strength: float = 0.05
