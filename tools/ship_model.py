@@ -27,10 +27,31 @@ from meshseal.models.io import load_model, read_metadata
 WEIGHTS = Path(__file__).resolve().parents[1] / "src" / "meshseal" / "weights"
 
 
+def method_lines(method) -> list[str]:
+    """The card's lines that describe the weights: the method with its parameters, the architecture."""
+    return [f"- Method: `{method.name}` (`meshseal.methods.{method.name}`); params: "
+            + ", ".join(f"{k} {v}" for k, v in method.params().items()) + ".",
+            f"- Architecture: {method.describe()}."]
+
+
+def refresh_header(name: str) -> int:
+    """Rewrite the Method and Architecture lines of a shipped model's card from its weights."""
+    card = WEIGHTS / f"{name}.md"
+    method = method_for(load_model(WEIGHTS / f"{name}.safetensors"))
+    lines = [line for line in card.read_text().splitlines() if not line.startswith(("- Method:", "- Architecture:"))]
+    at = next(i for i, line in enumerate(lines) if line.startswith("- Payload:")) + 1
+    card.write_text("\n".join(lines[:at] + method_lines(method) + lines[at:]) + "\n")
+    print(f"wrote {card}")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--run", type=Path, required=True, help="training run folder (has model.safetensors)")
-    parser.add_argument("--data", type=Path, required=True, help="dataset folder (meshseal data build)")
+    parser.add_argument("--run", type=Path, help="training run folder (has model.safetensors)")
+    parser.add_argument("--data", type=Path, help="dataset folder (meshseal data build)")
+    parser.add_argument("--header-only", action="store_true",
+                        help="rewrite only the card's Method and Architecture lines of the shipped NAME from its weights "
+                             "(they describe the weights; the measured tables below stay as their command wrote them)")
     parser.add_argument("--name", default="default")
     parser.add_argument("--views", type=int, default=2, help="views per test mesh")
     parser.add_argument("--seed", type=int, default=0)
@@ -42,6 +63,10 @@ def main() -> int:
                              "names of meshseal.evaluation.attacks without a change of camera)")
     parser.add_argument("--attack-meshes", type=int, default=100, help="test meshes for the --attacks table")
     args = parser.parse_args()
+    if args.header_only:
+        return refresh_header(args.name)
+    if args.run is None or args.data is None:
+        parser.error("--run and --data are required (except with --header-only)")
 
     source = args.run / "model.safetensors"
     metadata = read_metadata(source)
@@ -95,7 +120,6 @@ def main() -> int:
     shutil.copyfile(source, target)
     config = json.loads(metadata["config"])
     train_config = json.loads(metadata.get("train_config", "{}"))
-    architecture = method.describe()
     steps = int(metadata.get("steps") or 0)
     built = (f"(seed {metadata.get('seed')}, {steps} steps, {float(metadata.get('training_seconds', 0)) / 60:.1f} min on "
              "this repository's 2-core CPU machine)" if steps else
@@ -109,9 +133,7 @@ def main() -> int:
         "",
         f"- Payload: **{config['n_bits']} raw bits** ({payload}), strategy `{config['strategy']}`; file "
         f"`{target.name}` ({target.stat().st_size / 1e3:.1f} kB, safetensors).",
-        f"- Method: `{method.name}` (`meshseal.methods.{method.name}`); params: "
-        + ", ".join(f"{k} {v}" for k, v in method.params().items()) + ".",
-        f"- Architecture: {architecture}.",
+        *method_lines(method),
         f"- Built by: `meshseal train --config configs/{train_config.get('name', args.name)}.yaml --out {args.run}` "
         f"{built}.",
         f"- Data: `meshseal data build --out {args.data}`: {stats.get('n_train')} train / {stats.get('n_test')} test "

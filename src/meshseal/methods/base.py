@@ -99,9 +99,12 @@ class Method:
     def device(self) -> torch.device:
         return self.model.device
 
+    params_named: tuple[str, ...] = ()  # the config fields this scheme uses (empty: all of them)
+
     def params(self) -> dict:
-        """The scheme's parameters as a model card names them."""
-        return self.model.config.to_dict()
+        """The scheme's parameters as a model card names them: the config fields it uses."""
+        config = self.model.config.to_dict()
+        return {k: v for k, v in config.items() if not self.params_named or k in self.params_named}
 
     # ------------------------------------------------------------ embed
     def layout(self, mesh, note: bool = False):

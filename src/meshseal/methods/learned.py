@@ -20,6 +20,10 @@ class LearnedMethod(Method):
     `models.decoders`)."""
 
     name = "learned"
+    params_named = ("n_bits", "strategy", "texture_encoder", "texture_channels", "texture_blocks", "texture_downsample",
+                    "texture_strength", "texture_rms", "texture_size", "texture_tile", "vertex_encoder", "vertex_width",
+                    "normal_strength", "uv_strength", "decoder", "decoder_channels", "decoder_blocks", "frame_size",
+                    "uv_grid")
 
     def __init__(self, model):
         super().__init__(model)

@@ -30,6 +30,7 @@ class SurfaceMethod(Method):
     """The blind surface code (`models.surface`)."""
 
     name = "surface"
+    params_named = ("n_bits", "chips", "mark_colour", "texture_psnr", "activity_window", "activity_floor", "pattern_seed")
     takes_strength = True
     paper_pictures = True  # evaluated on the paper's 600 x 400 pictures
 

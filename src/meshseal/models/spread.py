@@ -250,7 +250,7 @@ def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
     a fraction of a pixel off leaves behind (damped: divided by the local variance, sigma `window` px,
     floored at `floor` x the picture's median). Both depend on the picture only, never on the key's signs, so z
     stays N(0, 1) without a mark. pixel (P,): flat indices into the (B, H, W) `shape` of the pictures.
-    `highpass` or `window` None skips that step (experiments/whitening.py measures each).
+    `highpass` or `window` None skips that step (docs/mark.md, "Alternatives measured", has what each is worth).
     """
     detail = projected if highpass is None else projected - local_mean(projected, pixel, shape, highpass)
     if window is None:

@@ -49,13 +49,14 @@ def _known(image: torch.Tensor):
 
 
 def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, codecs=CODECS,
-                 margin: float = 0.97) -> tuple[torch.Tensor, list]:
+                 margin: float = 0.7) -> tuple[torch.Tensor, list]:
     """`expected` (P, 3), the prediction at the object's pixels of pictures `image` (B, 3, H, W) (`pixel`
     (P,): flat indices into (B, H, W)), as the codec that saved each picture would have left it, and
     that codec per picture (None: the picture reads as saved losslessly). The prediction is pasted into
     its picture (the background as the picture shows it, so blocks across the silhouette see what the
     codec saw), 8-bit rounded, and saved by every candidate; the candidate whose result is closest to
-    the picture over the object's pixels is kept where it beats no codec by `margin` in squared error.
+    the picture over the object's pixels is kept where its squared error is under `margin` times no
+    codec's (a clean picture whose prediction misfits a little is not taken for a re-encoded one).
     A picture read again (the same tensor, unchanged) tries only the codec found the first time."""
     known = _known(image)
     n_images, _, height, width = image.shape

@@ -5,7 +5,12 @@ Small composable primitives (like nvdiffrast's) laid out one file per stage (lik
 below are imported on first use (`meshseal._lazy`): the command line reads `ENGINES` without importing torch.
 """
 
+from typing import TYPE_CHECKING
+
 from .._lazy import export_lazily
+
+if TYPE_CHECKING:
+    from .renderer import Renderer
 
 __all__ = ["Cameras", "cameras_from_eyes", "fibonacci_directions", "look_at", "perspective", "sample_any_view_cameras",
            "sample_seed_cameras", "interpolate", "scatter_to_image", "PointLights", "lights_at",
