@@ -85,8 +85,9 @@ class Reader:
             found = register_with_masks(self.on_cpu(original), tensor[0].cpu(), guesses, background_tensor.cpu(),
                                         fov_y=fov_y, recut=recut)
         camera = found.camera.to(self.device)
-        evidence = self.method.evidence(original, tensor.clamp(0, 1), camera)
-        second_look = (tensor.clamp(0, 1).cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
+        seen = tensor.clamp(0, 1)  # one tensor for this reading and the second look: the codec found once
+        evidence = self.method.evidence(original, seen, camera)
+        second_look = (seen.cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
         return Reading(evidence, tuple(float(v) for v in found.box), "registered", found.iou, camera,
                        second_look=second_look)
 
