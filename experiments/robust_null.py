@@ -4,12 +4,14 @@ whose reading picks the picture's codec). Without a mark the detection p-values 
 larger: reports per attack the pictures, how many reach the FPR 1e-6 threshold, the smallest p-value,
 the share under 0.01 and 0.1, and a Kolmogorov-Smirnov p-value against uniform.
 
-    python experiments/robust_null.py --data data --meshes 200 [--views 1] [--model robust]
+    python experiments/robust_null.py --data data --meshes 200 [--views 1] [--model robust] [--json OUT]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
 import time
 from pathlib import Path
 
@@ -34,6 +36,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=1)
     parser.add_argument("--model", default="robust")
     parser.add_argument("--attacks", default="none,jpeg95,jpeg90,jpeg75,jpeg50,webp80,brightness,noise2")
+    parser.add_argument("--json", type=Path, help="also write every p-value here (per attack)")
     args = parser.parse_args()
     watermarker = meshseal.load(args.model, "cpu")
     attacks = parse(args.attacks)
@@ -55,6 +58,9 @@ def main() -> None:
                 except meshseal.MeshsealError:
                     continue
                 p_values[name].append(watermarker.decide([reading]).p_value)
+        if (index + 1) % 25 == 0:
+            print(f"{index + 1} meshes, {sum(map(len, p_values.values()))} pictures, {time.time() - started:.0f} s",
+                  file=sys.stderr, flush=True)
     print(f"{args.model}: unmarked test meshes, {args.views} view(s) each, camera known, "
           f"{time.time() - started:.0f} s\n")
     print("| attack | pictures | at FPR 1e-6 | smallest p | p < 0.01 | p < 0.1 | KS p (uniform) |")
@@ -63,6 +69,10 @@ def main() -> None:
         values = np.array(values)
         print(f"| {name} | {len(values)} | {int((values <= payload.FPR).sum())} | {values.min():.2g} | "
               f"{(values < 0.01).mean():.3f} | {(values < 0.1).mean():.3f} | {stats.kstest(values, 'uniform').pvalue:.2g} |")
+
+
+    if args.json:
+        args.json.write_text(json.dumps({"model": args.model, "views": args.views, "p_values": p_values}))
 
 
 if __name__ == "__main__":

@@ -177,3 +177,32 @@ def test_fixed_power_after_clip_holds_the_rms_on_saturated_textures():
         kept[after_clip] = (marked - texture).pow(2).mean(dim=(1, 2, 3)).sqrt()
     assert bool((kept[False] < 0.04).all())  # the raw rescale loses power to clipping
     assert torch.allclose(kept[True], torch.tensor([0.05, 0.05]), rtol=0.1)
+
+
+def test_hidden_encoder_coords_and_fsk_keying():
+    """texture_coords makes the mark depend on where a texel sits (the same texture content at two
+    places gets two different residuals); fsk keys the carrier by each bit's value, so flipping one
+    bit swaps in another pattern rather than negating it."""
+    torch.manual_seed(0)
+    flat = torch.full((1, 3, 32, 32), 0.5)
+    message = torch.tensor([[1.0, 0, 1, 1, 0, 0, 1, 0]])
+    plain = WatermarkModel(ModelConfig(n_bits=8, **SMALL)).eval().texture_encoder
+    placed = WatermarkModel(ModelConfig(n_bits=8, texture_coords=True, **SMALL)).eval().texture_encoder
+    with torch.no_grad():
+        residual_plain = plain.residual(flat, message)
+        residual_placed = placed.residual(flat, message)
+    interior = (slice(None), slice(None), slice(6, -6), slice(6, -6))  # beyond the reach of zero padding
+    assert residual_plain[interior].std(dim=(2, 3)).max() < 1e-5  # a flat texture: nothing says where a texel is
+    assert residual_placed[interior].std(dim=(2, 3)).min() > 1e-3
+    fsk = WatermarkModel(ModelConfig(n_bits=8, texture_tile=4, texture_tile_keying="fsk", **SMALL)).eval().texture_encoder
+    assert fsk.carrier.in_features == 16
+    with torch.no_grad():
+        keys = torch.cat([message, 1 - message], dim=1)
+        flipped = message.clone()
+        flipped[0, 0] = 0
+        keys_flipped = torch.cat([flipped, 1 - flipped], dim=1)
+        change = fsk.carrier(keys_flipped) - fsk.carrier(keys)
+        expected = fsk.carrier.weight[:, 8] - fsk.carrier.weight[:, 0]  # bit 0 leaves its 1-carrier for its 0-carrier
+    assert torch.allclose(change[0], expected, atol=1e-5)
+    with pytest.raises(ValueError, match="keying"):
+        WatermarkModel(ModelConfig(n_bits=8, texture_tile=4, texture_tile_keying="qam", **SMALL))

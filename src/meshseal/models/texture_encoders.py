@@ -60,19 +60,27 @@ class HiddenTextureEncoder(TextureEncoder):
     repeated over the texture. A constant broadcast of the bits gives convolutions nothing spatial to
     build on (HiDDeN must borrow structure from the image, which trains slowly); the carrier gives every
     bit a spatial signature from the start, and its periodicity puts the whole message in every patch
-    of the surface, whatever part of it a view shows.
+    of the surface, whatever part of it a view shows. `keying` 'fsk' gives each value of a bit its own
+    carrier (the map reads the bits and their complements), so a reader can tell a bit by which pattern
+    is there, whatever its phase, instead of by its sign. `coords` adds the texel's (u, v) as inputs: the
+    encoder can then give each bit a place on the surface, for views whose range keeps places in place.
     """
 
     def __init__(self, n_bits: int, channels: int = 64, blocks: int = 4, size: int = 128,
-                 strength: float = 0.1, downsample: int = 1, tile: int = 0, tile_channels: int = 8):
+                 strength: float = 0.1, downsample: int = 1, tile: int = 0, tile_channels: int = 8,
+                 keying: str = "antipodal", coords: bool = False):
         super().__init__()
+        if keying not in ("antipodal", "fsk"):
+            raise ValueError(f"texture_tile_keying must be antipodal or fsk, not '{keying}'")
         self.size, self.strength, self.downsample, self.tile = size, strength, downsample, tile
+        self.keying, self.coords = keying, coords
         layers = [ConvBNReLU(3, channels)] + [ConvBNReLU(channels, channels) for _ in range(blocks - 1)]
         self.features = nn.Sequential(*layers)
         carrier_channels = tile_channels if tile else 0
-        self.carrier = nn.Linear(n_bits, tile_channels * tile * tile) if tile else None
+        keys = 2 * n_bits if keying == "fsk" else n_bits
+        self.carrier = nn.Linear(keys, tile_channels * tile * tile) if tile else None
         self.carrier_channels = carrier_channels
-        self.after = ConvBNReLU(channels + 3 + n_bits + carrier_channels, channels)
+        self.after = ConvBNReLU(channels + 3 + n_bits + carrier_channels + (2 if coords else 0), channels)
         self.out = nn.Conv2d(channels, 3, 1)
 
     def residual(self, texture, message):
@@ -82,8 +90,14 @@ class HiddenTextureEncoder(TextureEncoder):
                                     align_corners=False, antialias=True)
         height, width = texture.shape[-2:]
         inputs = [self.features(texture), texture, broadcast_message(message, height, width)]
+        if self.coords:
+            v, u = torch.meshgrid(torch.linspace(-1.0, 1.0, height, device=texture.device, dtype=texture.dtype),
+                                  torch.linspace(-1.0, 1.0, width, device=texture.device, dtype=texture.dtype),
+                                  indexing="ij")
+            inputs.append(torch.stack([u, v])[None].expand(texture.shape[0], -1, -1, -1))
         if self.carrier is not None:
-            pattern = self.carrier(2.0 * message - 1.0).reshape(-1, self.carrier_channels, self.tile, self.tile)
+            keys = torch.cat([message, 1.0 - message], dim=1) if self.keying == "fsk" else 2.0 * message - 1.0
+            pattern = self.carrier(keys).reshape(-1, self.carrier_channels, self.tile, self.tile)
             repeats = (-(-height // self.tile), -(-width // self.tile))
             inputs.append(pattern.repeat(1, 1, *repeats)[..., :height, :width])
         residual = self.out(self.after(torch.cat(inputs, dim=1)))

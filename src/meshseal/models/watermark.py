@@ -32,6 +32,8 @@ class ModelConfig:
     texture_size: int = 128
     texture_tile: int = 0  # > 0: a learned periodic carrier of this period (in working-size texels)
     texture_tile_channels: int = 8
+    texture_tile_keying: str = "antipodal"  # antipodal: a bit flips its carrier's sign | fsk: each value of a bit has its own carrier
+    texture_coords: bool = False  # hidden encoder: the texel's (u, v) as inputs, so a bit can take a place on the surface
     chips: int = 128  # spread: cells per side of the UV square, each carrying one bit with a random sign; surface: cells along x
     coarse_chips: int = 64  # spread: the grid of meshes whose `chips` cells would be under coarse_below px (0: never)
     coarse_below: float = 0.6  # spread: ... in a standard 256^2 view (models.spread.cell_pixels)
@@ -90,7 +92,8 @@ class WatermarkModel(nn.Module):
                 self.texture_encoder = HiddenTextureEncoder(n, config.texture_channels, config.texture_blocks,
                                                             config.texture_size, config.texture_strength,
                                                             config.texture_downsample, config.texture_tile,
-                                                            config.texture_tile_channels)
+                                                            config.texture_tile_channels, config.texture_tile_keying,
+                                                            config.texture_coords)
                 self.texture_encoder.rms = config.texture_rms
                 self.texture_encoder.rms_after_clip = config.texture_rms_after_clip
             elif config.texture_encoder == "spread":

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -62,7 +63,7 @@ class GBuffers:
         """Compressed .npz (uv and shade as float16), written atomically."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        temp = path.with_name(f".{path.name}.tmp.npz")
+        temp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")  # processes baking the same bank at once each write their own
         extra = {} if self.surface is None else {
             "face": self.surface.face.numpy().astype(np.int32), "bary": self.surface.bary.to(torch.float16).numpy(),
             "world": self.surface.world.to(torch.float16).numpy(), "eye": self.surface.eye.numpy(),
