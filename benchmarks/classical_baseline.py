@@ -14,8 +14,14 @@ from its marked texture checks that it decodes at that strength at all.
     pip install -e '.[baseline]'   # blind-watermark (numpy, opencv-python, PyWavelets; no torch)
     pip install --no-deps invisible-watermark   # only for --library invisible-watermark (it lists torch)
     python benchmarks/classical_baseline.py [--views 4] [--seed 0] [--library NAME] [--data DIR --meshes N]
+        [--models default,robust] [--attacks none,jpeg90,jpeg75,jpeg50,webp80,brightness,noise2]
 
-LAST line: ours_bit_acc=<f> baseline_bit_acc=<f> psnr_texture=<f> (means; psnr_texture is ours)
+With several `--models` each is set against the baseline at its own texture PSNR; `--attacks` (names of
+`meshseal.evaluation.attacks`; those that keep the frame, since both readings take the true camera)
+puts every picture through each attack first, and a second table gives the mean bit accuracy per attack.
+
+LAST line: ours_bit_acc=<f> baseline_bit_acc=<f> psnr_texture=<f> (means over the first model's clean
+pictures; psnr_texture is ours)
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ import numpy as np
 import torch
 
 import meshseal
+from meshseal.evaluation.attacks import apply, parse
 from meshseal.mesh import Material, Mesh, normalize, to_z_up
 from meshseal.payload import key_seed
 from meshseal.methods import read_bits
@@ -182,8 +189,10 @@ def to_uint8(texture: torch.Tensor) -> np.ndarray:
     return (quantise(texture) * 255).round().byte().permute(1, 2, 0).numpy()
 
 
-def measure(name: str, mesh: Mesh, watermarker, library, views: int, seed: int, renderer: MeshRenderer) -> dict:
-    """One mesh: both marks embedded at the same texture PSNR, rendered from the same views, read back."""
+def measure(name: str, mesh: Mesh, watermarker, library, views: int, seed: int, renderer: MeshRenderer,
+            attacks=("none",)) -> dict:
+    """One mesh: both marks embedded at the same texture PSNR, rendered from the same views, each picture
+    put through each attack (8-bit), read back with the true camera."""
     generator = torch.Generator().manual_seed(seed)
     bits = torch.randint(0, 2, (watermarker.n_bits,), generator=generator)
     material = next(i for i, m in enumerate(mesh.materials) if m.texture is not None)
@@ -207,17 +216,27 @@ def measure(name: str, mesh: Mesh, watermarker, library, views: int, seed: int, 
         pictures = {k: quantise(renderer(canonical(m), cameras, lights, SIZE, SIZE).image) for k, m in
                     (("ours", ours), ("baseline", baseline))}
         texture = original_batch.textures[material]
-        ours_acc, baseline_acc, coverage = 0.0, 0.0, 0.0
+        ours_acc, baseline_acc = {a: 0.0 for a in attacks}, {a: 0.0 for a in attacks}
+        coverage = 0.0
         for view in range(views):  # one picture at a time, as `Watermarker.detect` reads them
-            z = read_bits(watermarker.model, original_batch, pictures["ours"][[view]], cameras[[view]], key_seed(None))
-            ours_acc += float(((z[0] > 0).long() == bits).float().mean()) / views
-            seen, fraction = unrender_texture(original_batch, material, pictures["baseline"][[view]], cameras[[view]],
-                                              texture)
-            coverage += fraction / views
-            baseline_acc += float((library.extract(to_uint8(seen), len(bits), strength) == bits.numpy()).mean()) / views
+            for number, attack in enumerate(attacks):
+                hit = {}
+                for kind in ("ours", "baseline"):
+                    picture = (pictures[kind][view].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+                    attacked = apply(attack, picture, np.random.default_rng([seed, view, number]))
+                    hit[kind] = torch.from_numpy(attacked.astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+                z = read_bits(watermarker.model, original_batch, hit["ours"], cameras[[view]], key_seed(None))
+                ours_acc[attack] += float(((z[0] > 0).long() == bits).float().mean()) / views
+                seen, fraction = unrender_texture(original_batch, material, hit["baseline"], cameras[[view]], texture)
+                if number == 0:
+                    coverage += fraction / views
+                baseline_acc[attack] += float((library.extract(to_uint8(seen), len(bits), strength)
+                                               == bits.numpy()).mean()) / views
+    first = attacks[0]
     return {"name": name, "texture": "x".join(map(str, original.shape[:2])), "psnr_ours": psnr_ours,
-            "psnr_baseline": psnr_baseline, "strength": strength, "ours": ours_acc,
-            "baseline": baseline_acc, "direct": direct, "coverage": coverage}
+            "psnr_baseline": psnr_baseline, "strength": strength, "ours": ours_acc[first],
+            "baseline": baseline_acc[first], "direct": direct, "coverage": coverage,
+            "attacks": {a: (ours_acc[a], baseline_acc[a]) for a in attacks}}
 
 
 def main() -> None:
@@ -227,19 +246,26 @@ def main() -> None:
     parser.add_argument("--library", choices=sorted(LIBRARIES), default="blind-watermark")
     parser.add_argument("--data", default=None, help="a built dataset: add its first --meshes test meshes")
     parser.add_argument("--meshes", type=int, default=0)
+    parser.add_argument("--models", default="default", help="comma-separated shipped models, each against the baseline")
+    parser.add_argument("--attacks", default="none", help="comma-separated attacks that keep the frame")
     args = parser.parse_args()
+    attacks = parse(args.attacks)
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     print(f"load average at start: {os.getloadavg()}, torch threads: {torch.get_num_threads()}")
     start = time.perf_counter()
-    watermarker = meshseal.load()
     library = LIBRARIES[args.library](args.seed)
     meshes = [(name, meshseal.load_mesh(FIXTURES / name)) for name in MESHES]
     if args.data and args.meshes > 0:
         meshes += dataset_meshes(args.data, args.meshes)
     renderer = MeshRenderer()
-    rows = [measure(name, mesh, watermarker, library, args.views, args.seed + index, renderer)
-            for index, (name, mesh) in enumerate(meshes)]
+    by_model = {}
+    for model_name in args.models.split(","):
+        watermarker = meshseal.load(model_name)
+        by_model[model_name] = [measure(name, mesh, watermarker, library, args.views, args.seed + index, renderer,
+                                        attacks) for index, (name, mesh) in enumerate(meshes)]
+    watermarker = meshseal.load(args.models.split(",")[0])
+    rows = by_model[watermarker.name if watermarker.name in by_model else args.models.split(",")[0]]
     keys = ("psnr_ours", "psnr_baseline", "ours", "baseline", "direct", "coverage")
     mean = {key: sum(row[key] for row in rows) / len(rows) for key in keys}
     print(f"\n{args.library} vs meshseal ({watermarker.name}), {watermarker.n_bits} bits, {args.views} views at "
@@ -253,6 +279,20 @@ def main() -> None:
               f"{row['coverage']:.2f} |")
     print(f"| **mean** | | {mean['psnr_ours']:.2f} / {mean['psnr_baseline']:.2f} | | {mean['ours']:.3f} | "
           f"{mean['baseline']:.3f} | {mean['direct']:.3f} | {mean['coverage']:.2f} |")
+    if len(by_model) > 1 or attacks != ["none"]:
+        print(f"\nMean bit accuracy per attack, {len(meshes)} meshes x {args.views} views, true camera; the "
+              "baseline at each model's texture PSNR (ours / baseline, and the ratio of their gains over chance)\n")
+        print("| attack | " + " | ".join(f"{m} (PSNR {np.mean([r['psnr_ours'] for r in part]):.1f} dB): ours / baseline / gain ratio"
+                                       for m, part in by_model.items()) + " |")
+        print("|---|" + "---|" * len(by_model))
+        for attack in attacks:
+            cells = []
+            for part in by_model.values():
+                ours = float(np.mean([r["attacks"][attack][0] for r in part]))
+                base = float(np.mean([r["attacks"][attack][1] for r in part]))
+                ratio = (ours - 0.5) / (base - 0.5) if base > 0.5 else math.inf
+                cells.append(f"{ours:.3f} / {base:.3f} / {ratio:.1f}x")
+            print(f"| {attack} | " + " | ".join(cells) + " |")
     print(f"\n{time.perf_counter() - start:.1f} s; load average at end: {os.getloadavg()}")
     print(f"ours_bit_acc={mean['ours']:.4f} baseline_bit_acc={mean['baseline']:.4f} "
           f"psnr_texture={mean['psnr_ours']:.2f} psnr_texture_baseline={mean['psnr_baseline']:.2f} "
