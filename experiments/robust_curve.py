@@ -8,6 +8,7 @@ PNG, attacked, read with the camera known. One Markdown table row per mark: obje
 detected / exact message per attack at FPR 1e-6.
 
     python experiments/robust_curve.py --data data --meshes 30 [--psnr 40 37 34 31] [--colours grey blue-yellow]
+        [--set chips=64 --set coarse_chips=32 ...]   (any model setting of configs/robust.yaml overridden)
 """
 
 from __future__ import annotations
@@ -35,8 +36,15 @@ def main() -> None:
     parser.add_argument("--psnr", type=float, nargs="+", default=[40.0, 37.0, 34.0, 31.0])
     parser.add_argument("--colours", nargs="+", default=["grey", "blue-yellow"])
     parser.add_argument("--attacks", default="none,jpeg90,jpeg75,jpeg50,webp80")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a model setting (YAML value), repeatable")
     args = parser.parse_args()
     base = yaml.safe_load((ROOT / "configs" / "robust.yaml").read_text())["model"]
+    for item in args.set:
+        key, value = item.split("=", 1)
+        base[key] = yaml.safe_load(value)
+    if args.set:
+        print(f"<!-- settings: {' '.join(args.set)} -->")
     attacks = parse(args.attacks)
     dataset = MeshDataset(args.data, "test", seed=0)
     print("| mark | texture PSNR (dB) | object FLIP mean / p95 | object PSNR (dB) | "
