@@ -44,11 +44,14 @@ PICK_MARGIN = 0.7  # another candidate replaces the best-scored one only if its 
 PICK_IOU_SLACK = 0.1  # ... and only if its refined silhouette's IoU is at most this much below the best one's
 TEXTURE_IOU_SLACK = 0.04  # the texture stage's camera is kept only if its silhouette's IoU is at most this much below the start's
 FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-pixel one left this share of the misfit or more
+FLAT_ENOUGH = 0.02  # ... and a texture misfit (sigma 1) of this or more: under it the all-pixel light's run fits as a registered pose does
 RECUT_ROUNDS = 2  # `register_with_masks`: at most this many guesses in a row cut again from a registered silhouette
 RECUT_BELOW_IOU = 0.9  # ... only where the registered silhouette's IoU with its own guess is under this (a mask it disagrees with)
 MIN_RECUT_PIXELS = 64  # ... a cut smaller than this is not registered
 ACCEPT_MISFIT = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is under this is taken without trying other masks (a registered view fits far under it, an unrelated one near 2 a band)
 SHADED_CANDIDATES = 100  # the candidate views with the best silhouette overlap that are also scored on shading
+SCORE_LIGHT_DIRECTIONS = 48  # the candidates' shading score fits its light on this many directions (x 5 distances) ...
+SCORE_LIGHT_PIXELS = 256  # ... and at most about this many pixels a view (the texture stage's fits: 96 and 512)
 RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
 RETRY_KEEP = 12
 RETRY_ANGLE = 12.0  # ... at least this many degrees from each other and from the views refined first
@@ -132,7 +135,7 @@ def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 
     from .framing import BOX_MARGIN
 
     focal = size / 2 / math.tan(math.radians(cameras.fov_y) / 2)
-    used = mesh.positions[0].index_select(0, mesh.faces.unique())
+    used = _hull_points(mesh)
     for _ in range(rounds):
         with torch.no_grad():
             xy = clip_to_screen(cameras.world_to_clip(used[None].expand(len(cameras), -1, -1), 1.0), size, size)
@@ -153,6 +156,29 @@ def _center_objects(mesh: MeshBatch, cameras: Cameras, size: int, rounds: int = 
         closer = (1.0 - 1.0 / grow) * distance * -view[:, 2]  # toward the object
         cameras = replace(cameras, eye=cameras.eye + shift + closer, at=cameras.at + shift)
     return cameras
+
+
+_HULL: list = []  # (positions, faces, hull points) of the last mesh `_hull_points` saw
+
+
+def _hull_points(mesh: MeshBatch) -> torch.Tensor:
+    """The vertices (N, 3) of the convex hull of the mesh's used vertices: a perspective projection of
+    points in front of the camera keeps convex hulls, so their projected box is the whole mesh's (and
+    `_center_objects` projects a few hundred points instead of thousands). Kept for the last mesh: a
+    folder of pictures of one mesh computes it once."""
+    positions, faces = mesh.positions, mesh.faces
+    if _HULL and _HULL[0][0] is positions and _HULL[0][1] is faces:
+        return _HULL[0][2]
+    used = positions[0].index_select(0, faces.unique())
+    try:
+        from scipy.spatial import ConvexHull
+
+        hull = used.index_select(0, torch.as_tensor(ConvexHull(used.detach().cpu().double().numpy()).vertices,
+                                                    device=used.device))
+    except Exception:  # flat or degenerate (qhull refuses): every used vertex
+        hull = used
+    _HULL[:] = [(positions, faces, hull)]
+    return hull
 
 
 def _seen_target(low: torch.Tensor, high: torch.Tensor, seen_low: torch.Tensor, seen_high: torch.Tensor,
@@ -252,7 +278,8 @@ def _shading_misfit(mesh: MeshBatch, fragments, cameras: Cameras, target: torch.
     n_batch = fragments.shape[0]
     seen = pixels_at(target.expand(n_batch, -1, -1, -1), fragments)
     inside = (pixels_at(target_mask.expand(n_batch, -1, -1, -1), fragments)[:, 0] > 0.5).to(seen.dtype)
-    predicted, _, _ = relight_fragments(mesh, fragments, cameras, seen)
+    predicted, _, _ = relight_fragments(mesh, fragments, cameras, seen, directions=SCORE_LIGHT_DIRECTIONS,
+                                        max_pixels=SCORE_LIGHT_PIXELS)
     error = seen.new_zeros(n_batch).index_add(0, fragments.batch, ((seen - predicted) ** 2).mean(1) * inside)
     count = seen.new_zeros(n_batch).index_add(0, fragments.batch, inside)
     pixels = seen.new_zeros(n_batch).index_add(0, fragments.batch, torch.ones_like(inside)).clamp_min(1)
@@ -362,32 +389,48 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
     delta = torch.zeros(n_batch, 6)
     damping = torch.full((n_batch,), 1e-3)
 
-    def evaluate(delta):
-        cover, points = _pixel_points(mesh, _moved(start, delta, size), size)
+    def evaluate(cameras: Cameras, delta):
+        cover, points = _pixel_points(mesh, _moved(cameras, delta, size), size)
         blurred = gaussian_blur(cover, sigma)
-        return blurred, points, (known * (blurred.reshape(n_batch, -1) - blurred_target) ** 2).sum(1)
+        return blurred, points, (known * (blurred.reshape(len(delta), -1) - blurred_target) ** 2).sum(1)
 
     with torch.no_grad():
-        blurred, points, cost = evaluate(delta)
+        blurred, points, cost = evaluate(start, delta)
+        running = list(range(n_batch))  # the cameras still moving: one whose step is under 0.01 px is done
         for _ in range(iterations):
-            flow = _screen_flow(start, delta, points, size, size)  # (6, B, S*S, 2)
-            gradient_y, gradient_x = torch.gradient(blurred[:, 0], dim=(1, 2))
-            jacobian = -(gradient_x.reshape(1, n_batch, -1) * flow[..., 0]
-                         + gradient_y.reshape(1, n_batch, -1) * flow[..., 1]).permute(1, 2, 0)  # (B, S*S, 6)
-            jacobian = jacobian * known[..., None]
-            residual = (blurred.reshape(n_batch, -1) - blurred_target) * known
+            run = torch.tensor(running)
+            some = start if len(running) == n_batch else start[running]
+            n_run = len(running)
+            gradient_y, gradient_x = torch.gradient(blurred[run, 0], dim=(1, 2))
+            gradient_x, gradient_y = gradient_x.reshape(n_run, -1), gradient_y.reshape(n_run, -1)
+            # Only pixels where the blurred silhouette varies have a Jacobian row (elsewhere the image
+            # gradient is exactly zero): the screen flow is taken at those alone, per camera, padded
+            # to the longest list with rows of zero weight.
+            active = ((gradient_x != 0) | (gradient_y != 0)) & (known > 0.5)
+            counts = active.sum(1)
+            longest = max(1, int(counts.max()))
+            pick = active.to(torch.uint8).sort(dim=1, descending=True, stable=True).indices[:, :longest]
+            valid = (torch.arange(longest)[None] < counts[:, None]).to(blurred.dtype)
+            flow = _screen_flow(some, delta[run], points[run].gather(1, pick[..., None].expand(-1, -1, 3)), size,
+                                size)  # (6, B, N, 2)
+            jacobian = -(gradient_x.gather(1, pick)[None] * flow[..., 0]
+                         + gradient_y.gather(1, pick)[None] * flow[..., 1]).permute(1, 2, 0)  # (B, N, 6)
+            jacobian = jacobian * valid[..., None]
+            residual = ((blurred[run].reshape(n_run, -1) - blurred_target) * known).gather(1, pick)
             normal = jacobian.transpose(1, 2) @ jacobian
             scale = normal.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-12)
-            update = -torch.linalg.solve(normal + (damping * scale)[:, None, None] * torch.eye(6),
+            update = -torch.linalg.solve(normal + (damping[run] * scale)[:, None, None] * torch.eye(6),
                                          (jacobian.transpose(1, 2) @ residual[..., None])[..., 0])
-            trial_blurred, trial_points, trial_cost = evaluate(delta + update)
-            better = trial_cost < cost
-            delta = torch.where(better[:, None], delta + update, delta)
-            blurred = torch.where(better[:, None, None, None], trial_blurred, blurred)
-            points = torch.where(better[:, None, None], trial_points, points)
-            cost = torch.where(better, trial_cost, cost)
-            damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-6, 1e6)
-            if bool((update.abs().amax(1) < 0.01).all()):
+            trial_blurred, trial_points, trial_cost = evaluate(some, delta[run] + update)
+            better = trial_cost < cost[run]
+            delta[run] = torch.where(better[:, None], delta[run] + update, delta[run])
+            blurred[run] = torch.where(better[:, None, None, None], trial_blurred, blurred[run])
+            points[run] = torch.where(better[:, None, None], trial_points, points[run])
+            cost[run] = torch.where(better, trial_cost, cost[run])
+            damping[run] = torch.where(better, damping[run] * 0.3, damping[run] * 10).clamp(1e-6, 1e6)
+            moving = (update.abs().amax(1) >= 0.01).tolist()
+            running = [camera for camera, still in zip(running, moving) if still]
+            if not running:
                 break
         return _moved(start, delta, size)
 
@@ -558,7 +601,7 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
     picture, mask = _working_size(picture, mask)
     results = [camera, refine_on_texture(mesh, camera, picture, mask, light_from="all")]
     misfits = [texture_misfit(mesh, c, picture, mask) for c in results]
-    if misfits[1] >= FLAT_RETRY * misfits[0]:
+    if misfits[1] >= FLAT_RETRY * misfits[0] and misfits[1] >= FLAT_ENOUGH:
         results.append(refine_on_texture(mesh, camera, picture, mask, light_from="flat"))
         misfits.append(texture_misfit(mesh, results[-1], picture, mask))
     return results[min(range(len(results)), key=misfits.__getitem__)]

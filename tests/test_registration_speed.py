@@ -1,0 +1,106 @@
+"""Registration's shortcuts (issue #46): each does the work it replaces, on the fixtures."""
+
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from meshseal.mesh import load, normalize, to_z_up
+from meshseal.reading import registration
+from meshseal.reading.registration import _hull_points, _moved, _refine_silhouettes, _targets, frame_picture
+from meshseal.render import (MeshBatch, MeshRenderer, clip_to_screen, pixels_at, relight_fragments, sample_any_lights,
+                             sample_any_view_cameras)
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+def _bunny():
+    return MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "bunny.glb"))))
+
+
+def _view(seed=3, index=1):
+    generator = torch.Generator().manual_seed(seed)
+    cameras, lights = sample_any_view_cameras(3, generator), sample_any_lights(3, generator)
+    return cameras[[index]], lights[[index]]
+
+
+def test_the_hull_frames_the_object_as_all_its_vertices_do():
+    """The convex hull's vertices are a small part of the mesh's, and their projected box is the whole
+    mesh's from any side, close up or far (what `_center_objects` places candidates by)."""
+    mesh = _bunny()
+    hull = _hull_points(mesh)
+    used = mesh.positions[0].index_select(0, mesh.faces.unique())
+    assert len(hull) < len(used) / 4
+    assert _hull_points(mesh) is hull  # kept for the next picture of the mesh
+    cameras = sample_any_view_cameras(16, torch.Generator().manual_seed(0))
+    for points in (hull, used):
+        xy = clip_to_screen(cameras.world_to_clip(points[None].expand(16, -1, -1), 1.0), 64, 64)
+        box = torch.cat([xy.amin(1), xy.amax(1)], -1)
+        if points is hull:
+            hull_box = box
+    assert torch.allclose(hull_box, box, atol=1e-4)
+
+
+def test_silhouette_refinement_stops_each_camera_on_its_own():
+    """Three cameras refined in one batch, one already at the picture's pose and two a few pixels off:
+    each ends on the pose (the one that starts there is not moved off it while the others still move)."""
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    out = MeshRenderer()(mesh, camera, lights, 128, 128, (0.5, 0.5, 0.5))
+    target, target_mask, box, inside = frame_picture(out.image[0], out.rgba[0, ..., 3] > 0.5, 64,
+                                                     torch.tensor([0.5, 0.5, 0.5]))
+    from meshseal.reading.registration import crop_intrinsics
+
+    fov, principal = crop_intrinsics(128, 128, box[0], camera.fov_y)
+    framed = replace(camera, fov_y=fov, principal=principal)
+    level = _targets(target, target_mask, inside)[64]
+    offsets = torch.tensor([[0.0] * 6, [0.0, 0.0, 0.5, 3.0, -2.0, 1.0], [-1.0, 0.5, 0.3, -1.5, 2.0, -0.5]])
+    starts = _moved(replace(framed, eye=framed.eye.expand(3, 3), at=framed.at.expand(3, 3), up=framed.up.expand(3, 3)),
+                    offsets, 64)
+    refined = _refine_silhouettes(mesh, starts, level, 1.0, iterations=20)
+    from meshseal.reading.registration import pose_error
+
+    errors = [pose_error(mesh, framed, refined[[k]], 64, 64) for k in range(3)]
+    before = [pose_error(mesh, framed, starts[[k]], 64, 64) for k in range(3)]
+    assert min(before[1:]) > 1.0 and max(errors) < 0.3, (before, errors)
+
+
+def test_the_flat_light_run_is_skipped_only_where_the_first_run_fits(monkeypatch):
+    """`refine_on_texture_twice` runs the flat-half light's refinement where the all-pixel light's run
+    leaves a texture misfit of FLAT_ENOUGH or more (and FLAT_RETRY of the start's), not under it;
+    FLAT_ENOUGH = 0 restores running it wherever FLAT_RETRY says."""
+    runs = []
+    misfit_after = {}
+
+    def fake_refine(mesh, camera, picture, mask, light_from="all", **_):
+        runs.append(light_from)
+        return replace(camera, fov_y=camera.fov_y + (1.0 if light_from == "all" else 2.0))
+
+    def fake_misfit(mesh, camera, picture, mask, *args, **kwargs):
+        return {60.0: 0.05, 61.0: misfit_after["all"], 62.0: 0.001}[round(camera.fov_y)]
+
+    monkeypatch.setattr(registration, "refine_on_texture", fake_refine)
+    monkeypatch.setattr(registration, "texture_misfit", fake_misfit)
+    camera = replace(_view()[0], fov_y=60.0)
+    picture, mask = torch.zeros(1, 3, 32, 32), torch.ones(1, 32, 32)
+    for after, expected, enough in ((0.01, ["all"], registration.FLAT_ENOUGH), (0.03, ["all", "flat"], registration.FLAT_ENOUGH),
+                                    (0.01, ["all", "flat"], 0.0), (0.001, ["all"], 0.0)):
+        runs.clear()
+        misfit_after["all"] = after
+        monkeypatch.setattr(registration, "FLAT_ENOUGH", enough)
+        found = registration.refine_on_texture_twice(None, camera, picture, mask)
+        assert runs == expected, (after, enough, runs)
+        assert round(found.fov_y) == (62 if "flat" in expected else 61)
+
+
+def test_the_candidates_coarser_light_fit_still_explains_our_renders():
+    """The shading score's cheaper light fit (SCORE_LIGHT_DIRECTIONS, SCORE_LIGHT_PIXELS) explains a
+    render of our own nearly as the texture stage's finer one does, and far better than no light."""
+    mesh, (camera, lights) = _bunny(), _view()
+    out = MeshRenderer(blend="hard")(mesh, camera, lights, 64, 64)
+    seen = pixels_at(out.image, out.fragments)
+    fine, _, _ = relight_fragments(mesh, out.fragments, camera, seen)
+    coarse, _, _ = relight_fragments(mesh, out.fragments, camera, seen, directions=registration.SCORE_LIGHT_DIRECTIONS,
+                                     max_pixels=registration.SCORE_LIGHT_PIXELS)
+    rms = lambda predicted: float((seen - predicted).pow(2).mean().sqrt())  # noqa: E731
+    assert rms(coarse) < 0.015 and rms(coarse) < 1.5 * rms(fine) + 0.002
+    assert rms(coarse) < 0.2 * float((seen - seen.mean(0)).pow(2).mean().sqrt())
