@@ -100,3 +100,71 @@ def test_a_picture_file_saved_as_jpeg_reads_its_mark_with_the_robust_model(tmp_p
                  "--seed", "2"]) == 0
     Image.open(tmp_path / "v.png").convert("RGB").save(tmp_path / "v.jpg", quality=85)  # no metadata: registered
     assert main(["detect", str(tmp_path / "v.jpg"), "--mesh", str(FIXTURES / "bunny.glb"), "--model", "robust"]) == 0
+
+
+def test_a_picture_file_says_which_codecs_to_try(tmp_path):
+    from meshseal.reading.compression import CODECS
+    from meshseal.reading.pictures import CAMERA_KEY, load_picture_and_codecs
+
+    _, _, uint8 = _scene()
+    picture = Image.fromarray(uint8)
+    for options, codecs in (({"quality": 75}, [("JPEG", 75, 2)]), ({"quality": 95, "subsampling": 0}, [("JPEG", 95, 0)]),
+                            ({"quality": 92, "subsampling": 0}, None)):  # tables of an unlisted quality: search
+        picture.save(tmp_path / "p.jpg", **options)
+        assert load_picture_and_codecs(tmp_path / "p.jpg")[3] == codecs, options
+        assert codecs is None or codecs[0] in CODECS
+    from PIL.PngImagePlugin import PngInfo
+
+    picture.save(tmp_path / "plain.png")
+    assert load_picture_and_codecs(tmp_path / "plain.png")[3] is None  # a PNG may hold a decoded JPEG: search
+    info = PngInfo()
+    info.add_text(CAMERA_KEY, "{}")
+    picture.save(tmp_path / "rendered.png", pnginfo=info)
+    assert load_picture_and_codecs(tmp_path / "rendered.png")[3] == []  # meshseal render's: lossless
+    picture.save(tmp_path / "p.webp", quality=80)
+    assert load_picture_and_codecs(tmp_path / "p.webp")[3] is None
+    assert load_picture_and_codecs(uint8)[3] is None
+
+
+def test_codecs_a_file_gives_are_the_only_ones_tried(monkeypatch):
+    import meshseal.reading.compression as compression
+
+    _, pixel, uint8 = _scene()
+    exact = torch.from_numpy(uint8.reshape(-1, 3)[pixel.numpy()].astype(np.float32) / 255.0)
+    saved = apply("jpeg75", uint8, np.random.default_rng(0))
+    tried = []
+    real = compression._codec_round_trip
+    monkeypatch.setattr(compression, "_codec_round_trip", lambda p, codec: tried.append(codec) or real(p, codec))
+    searched, chosen = recompressed(torch.from_numpy(saved).permute(2, 0, 1)[None].float() / 255.0, exact, pixel)
+    assert chosen == [("JPEG", 75, 2)] and len(tried) == len(compression.CODECS)
+    tried.clear()
+    picture = torch.from_numpy(saved).permute(2, 0, 1)[None].float() / 255.0
+    compression.expect(picture, [[("JPEG", 75, 2)]])
+    told, chosen = recompressed(picture, exact, pixel)
+    assert chosen == [("JPEG", 75, 2)] and tried == [("JPEG", 75, 2)] and torch.equal(told, searched)
+    tried.clear()
+    lossless = torch.from_numpy(uint8).permute(2, 0, 1)[None].float() / 255.0
+    compression.expect(lossless, [[]])
+    kept, chosen = recompressed(lossless, exact, pixel)
+    assert chosen == [None] and tried == [] and torch.equal(kept, exact)
+
+
+def test_a_rendered_png_reads_as_the_full_codec_search_reads_it_without_any_codec(tmp_path, monkeypatch):
+    import meshseal
+    import meshseal.reading.compression as compression
+    from meshseal.cli import main
+    from meshseal.reading.pictures import camera_from_metadata, load_picture
+
+    marked = tmp_path / "m.glb"
+    assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(marked), "--message", "ab42", "--views", "0"]) == 0
+    assert main(["render", str(marked), "-o", str(tmp_path / "v.png"), "--width", "128", "--height", "128"]) == 0
+    watermarker = meshseal.load()
+    original = watermarker.original(FIXTURES / "bunny.glb")
+    pixels, _, text = load_picture(tmp_path / "v.png")
+    searched = watermarker.decide([watermarker.read(pixels, original, camera=camera_from_metadata(text, "cpu"))])
+    tried = []
+    real = compression._codec_round_trip
+    monkeypatch.setattr(compression, "_codec_round_trip", lambda p, codec: tried.append(codec) or real(p, codec))
+    found = watermarker.detect(tmp_path / "v.png", original)
+    assert tried == [] and found.message == "ab42"
+    assert (found.bits, found.p_value, found.soft) == (searched.bits, searched.p_value, searched.soft)

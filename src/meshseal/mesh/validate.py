@@ -80,6 +80,26 @@ def find_asset(folder: Path, name: str) -> Path | None:
     return None
 
 
+JPEG_CODEC_KEY = "meshseal:jpeg_codec"  # read_image's note of a JPEG file's own codec (see _jpeg_codec)
+
+
+def _jpeg_codec(opened) -> tuple | None:
+    """A JPEG file's own encoder settings, as `reading.compression` re-encodes with them: ("JPEG",
+    quantization tables, chroma subsampling), for a 3-component YCbCr baseline picture stored upright
+    (an EXIF rotation moves its 8x8 blocks); None for anything else (grey, CMYK, rotated)."""
+    from PIL import JpegImagePlugin
+
+    try:
+        sampling = JpegImagePlugin.get_sampling(opened)
+        tables = {int(k): list(v) for k, v in dict(opened.quantization).items()}
+        rotated = opened.getexif().get(0x0112, 1) not in (1, None)
+    except Exception:
+        return None
+    if opened.mode != "RGB" or sampling not in (0, 1, 2) or len(tables) not in (2, 3) or rotated:
+        return None
+    return ("JPEG", tables, sampling)
+
+
 def read_image(source, name, min_side: int = 1):
     """Decode an image (a path or bytes) with PIL, fully, under PIL's decompression-bomb limit.
 
@@ -100,6 +120,9 @@ def read_image(source, name, min_side: int = 1):
                 opened.load()
                 image = opened.copy()
                 image.info = dict(opened.info)
+                image.format = opened.format  # (a copy has none) the file's format, for the codec step
+                if opened.format == "JPEG":  # its own tables: what the codec step of informed reading tries
+                    image.info[JPEG_CODEC_KEY] = _jpeg_codec(opened)
     except (Image.DecompressionBombError, Image.DecompressionBombWarning):
         raise MeshError(f"{name}: image claims more than {limit} pixels (a decompression bomb?); "
                         f"refusing to decode it") from None

@@ -23,6 +23,36 @@ CODECS = ([("JPEG", q, 2) for q in (95, 90, 85, 80, 75, 70, 60, 50, 40)]
           + [("WEBP", q, None) for q in (95, 90, 80, 70, 50)])
 
 
+_TABLES: dict = {}  # JPEG candidate -> (its quantization tables, subsampling) as Pillow writes them
+
+
+def listed_jpeg(codec) -> tuple | None:
+    """The candidate of CODECS that a JPEG file's own settings (`mesh.validate._jpeg_codec`: "JPEG", its
+    quantization tables, its chroma subsampling) are, or None: a file saved by Pillow or libjpeg at one
+    of the listed qualities is tried with that candidate alone. Tables of another quality or encoder
+    keep the full search: the exact tables of a quality between the listed ones (JPEG 92 4:4:4) fit the
+    picture, yet read the default mark worse than the search's choice (benchmarks/README.md)."""
+    if codec is None:
+        return None
+    if not _TABLES:
+        blank = np.zeros((16, 16, 3), dtype=np.uint8)
+        for candidate in CODECS:
+            if candidate[0] != "JPEG":
+                continue
+            from PIL import Image
+
+            buffer = io.BytesIO()
+            Image.fromarray(blank).save(buffer, format="JPEG", quality=candidate[1], subsampling=candidate[2])
+            with Image.open(io.BytesIO(buffer.getvalue())) as saved:
+                tables = {int(k): list(v) for k, v in dict(saved.quantization).items()}
+            _TABLES[candidate] = (tables, candidate[2])
+    _, tables, subsampling = codec
+    for candidate, (own, own_subsampling) in _TABLES.items():
+        if own_subsampling == subsampling and own == tables:
+            return candidate
+    return None
+
+
 def _codec_round_trip(picture: np.ndarray, codec) -> np.ndarray:
     """(H, W, 3) uint8 through one codec and back."""
     from PIL import Image
@@ -36,16 +66,31 @@ def _codec_round_trip(picture: np.ndarray, codec) -> np.ndarray:
         return np.asarray(decoded.convert("RGB"))
 
 
-_FOUND: list = []  # (picture, its version, the codec found per image): a picture read again under
-# other cameras (registration's second look) keeps the codec found the first time
+_FOUND: list = []  # (picture, its version, the candidate codecs per image): a picture read again under
+# other cameras (registration's second look) tries only the codec found the first time; `expect` sets them
+# before the first reading where the picture's file says which codec saved it
 
 
 def _known(image: torch.Tensor):
-    for kept, version, chosen in _FOUND:
+    for kept, version, candidates in _FOUND:
         if (kept.data_ptr(), kept.shape, kept.dtype, version) == (image.data_ptr(), image.shape, image.dtype,
                                                                   image._version):
-            return chosen
+            return candidates
     return None
+
+
+def _remember(image: torch.Tensor, candidates: list) -> None:
+    _FOUND[:] = [(image, image._version, candidates)] + [entry for entry in _FOUND if entry[0] is not image][:3]
+
+
+def expect(image: torch.Tensor, candidates: list) -> None:
+    """Before pictures `image` (B, 3, H, W) are read: per picture, the only codecs `recompressed` should
+    try (a list; [] for a picture saved losslessly), known from its file rather than searched for: the
+    candidate a JPEG file's own tables are (`listed_jpeg`), none for a PNG `meshseal render` wrote (its
+    camera chunk would not survive a lossy codec). Kept with `image` as long as the tensor is unchanged."""
+    if len(candidates) != image.shape[0]:
+        raise ValueError(f"expected candidates for {image.shape[0]} pictures, got {len(candidates)}")
+    _remember(image, [list(c) for c in candidates])
 
 
 def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, codecs=CODECS,
@@ -57,9 +102,12 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     codec saw), 8-bit rounded, and saved by every candidate; the candidate whose result is closest to
     the picture over the object's pixels is kept where its squared error is under `margin` times no
     codec's (a clean picture whose prediction misfits a little is not taken for a re-encoded one).
-    A picture read again (the same tensor, unchanged) tries only the codec found the first time."""
+    A picture read again (the same tensor, unchanged) tries only the codec found the first time, and
+    a picture whose codec its file gave (`expect`) only that one."""
     known = _known(image)
     n_images, _, height, width = image.shape
+    if known is not None and not any(known):  # every picture saved losslessly: nothing to try
+        return expected, [None] * n_images
     flat = image.detach().permute(0, 2, 3, 1).reshape(-1, 3).cpu()
     canvas = flat.clone()
     canvas[pixel.cpu()] = expected.detach().cpu().to(canvas.dtype)
@@ -75,7 +123,7 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
         seen = flat.reshape(n_images, height * width, 3)[index, local].numpy().astype(np.float64) * 255.0
         plain = canvas[index].reshape(-1, 3)[local].astype(np.float64)
         best, best_error = None, float(((seen - plain) ** 2).sum()) * margin
-        for codec in (codecs if known is None else [c for c in known[index:index + 1] if c is not None]):
+        for codec in (codecs if known is None else known[index]):
             trial = _codec_round_trip(canvas[index], codec).reshape(-1, 3)[local].astype(np.float64)
             error = float(((seen - trial) ** 2).sum())
             if error < best_error:
@@ -84,5 +132,5 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
         if best is not None:
             out[mine] = torch.from_numpy(values / 255.0).to(out)
     if known is None:
-        _FOUND[:] = [(image, image._version, chosen)] + _FOUND[:3]
+        _remember(image, [[] if codec is None else [codec] for codec in chosen])
     return out, chosen

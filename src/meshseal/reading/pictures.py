@@ -56,15 +56,40 @@ def load_picture(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
     A path must name a regular file holding a picture PIL reads, within PIL's decompression-bomb pixel
     limit, at least MIN_PICTURE_SIDE pixels a side; anything else is a MeshsealError naming it.
     """
+    return load_picture_and_codecs(image)[:3]
+
+
+def file_codecs(image) -> list | None:
+    """The codecs the codec step (`reading.compression.recompressed`) should try on a PIL picture, from
+    its file alone, or None where the file does not say (search them all): a PNG carrying the camera
+    chunk `meshseal render` writes was saved losslessly by it, since no lossy format keeps that chunk
+    ([]); a JPEG file whose quantization tables and chroma subsampling are one of the candidates
+    (`compression.listed_jpeg`; upright 3-component pictures) tries that one alone."""
+    from ..mesh.validate import JPEG_CODEC_KEY, _jpeg_codec
+    from .compression import listed_jpeg
+
+    if image.format == "PNG" and isinstance(image.info.get(CAMERA_KEY), str):
+        return []
+    if image.format == "JPEG":
+        codec = listed_jpeg(image.info[JPEG_CODEC_KEY] if JPEG_CODEC_KEY in image.info else _jpeg_codec(image))
+        return None if codec is None else [codec]
+    return None
+
+
+def load_picture_and_codecs(image) -> tuple[np.ndarray, np.ndarray | None, str | None, list | None]:
+    """`load_picture`, and the codecs its file says saved it (`file_codecs`; None for arrays, tensors
+    and files that do not say)."""
     from PIL import Image
 
     from ..mesh.validate import read_image
 
     name = picture_name(image)
+    codecs = None
     if isinstance(image, (str, Path)):
         image = read_image(Path(image), name, MIN_PICTURE_SIDE)
     if isinstance(image, Image.Image):
         camera_text = image.info.get(CAMERA_KEY)
+        codecs = file_codecs(image)
         pixels, alpha = _pil_to_arrays(image, name)
         camera_text = camera_text if isinstance(camera_text, str) else None
     else:
@@ -86,7 +111,7 @@ def load_picture(image) -> tuple[np.ndarray, np.ndarray | None, str | None]:
         raise MeshsealError(f"{name}: picture is {width}x{height} pixels, too small (at least "
                             f"{MIN_PICTURE_SIDE} pixels a side)")
     mask = alpha > 0.5 if alpha is not None and alpha.min() < 0.5 else None
-    return pixels, mask, camera_text
+    return pixels, mask, camera_text, codecs
 
 
 def camera_from_metadata(text: str, device, name: str = "picture"):

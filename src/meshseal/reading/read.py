@@ -11,7 +11,7 @@ import torch
 
 from ..errors import MeshsealError
 from .framing import box_from_points, boxes_from_mask, inner_picture, object_mask
-from .pictures import camera_from_metadata, load_picture, picture_name
+from .pictures import camera_from_metadata, load_picture_and_codecs, picture_name
 
 MIN_OBJECT_PIXELS = 64  # fewer object pixels than this: nothing to read
 
@@ -45,7 +45,7 @@ class Reader:
         """One picture's evidence; `original` from `Method.prepare`, None for blind methods. The camera
         comes from `camera` (one `Cameras`, canonical frame: it overrides the rest), else the picture's
         metadata (unless `register`), else registration assuming a vertical field of view `fov_y`."""
-        pixels, alpha, camera_text = load_picture(image)
+        pixels, alpha, camera_text, codecs = load_picture_and_codecs(image)
         given = camera is not None
         from_metadata = original is not None and camera_text is not None and not register and not given
         if alpha is not None:
@@ -56,6 +56,7 @@ class Reader:
             if inner is not None:  # a picture within a picture (a screenshot): read the inner one, in its own frame
                 top, bottom, left, right = inner
                 pixels = np.ascontiguousarray(pixels[top:bottom, left:right])
+                codecs = None  # its blocks no longer lie on the file's 8x8 grid
             mask, background = object_mask(pixels, trim=not (given or from_metadata))
         if int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
             what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"
@@ -69,7 +70,7 @@ class Reader:
             height, width = pixels.shape[:2]
             corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
             box = tuple(float(v) for v in box_from_points(corners.reshape(-1, 2), height, width)[0])
-            evidence = self.method.evidence(original, tensor.clamp(0, 1), camera)
+            evidence = self.method.evidence(original, self._expect_codecs(tensor.clamp(0, 1), codecs), camera)
             if from_metadata:  # kept for `why_not`: does the picture show this mesh where its camera says?
                 return Reading(evidence, box, "metadata", None, camera,
                                object_mask=torch.from_numpy(np.ascontiguousarray(mask > 0.5)))
@@ -85,11 +86,22 @@ class Reader:
             found = register_with_masks(self.on_cpu(original), tensor[0].cpu(), guesses, background_tensor.cpu(),
                                         fov_y=fov_y, recut=recut)
         camera = found.camera.to(self.device)
-        seen = tensor.clamp(0, 1)  # one tensor for this reading and the second look: the codec found once
+        # one tensor for this reading and the second look: the codec found once
+        seen = self._expect_codecs(tensor.clamp(0, 1), codecs)
         evidence = self.method.evidence(original, seen, camera)
         second_look = (seen.cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
         return Reading(evidence, tuple(float(v) for v in found.box), "registered", found.iou, camera,
                        second_look=second_look)
+
+    @staticmethod
+    def _expect_codecs(seen: torch.Tensor, codecs: list | None) -> torch.Tensor:
+        """`seen`, with the codecs its file says saved it noted for the codec step (`compression.expect`:
+        a JPEG file's own tables, none for a PNG `meshseal render` wrote); None: the step searches."""
+        if codecs is not None:
+            from .compression import expect
+
+            expect(seen, [codecs])
+        return seen
 
     def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original):
         """The object's pixels as registration should try them, and how to cut them again from a
