@@ -345,3 +345,26 @@ def test_bits_of_a_few_equal_cells_get_the_lattice_tail_within_a_chernoff_factor
         assert tail[index] * (1 - 1e-9) <= p <= 30 * tail[index]
     if cells == 2:
         assert detection_pvalue(np.full(64, math.sqrt(2.0)), np.ones((64, 2))) == pytest.approx(2.0 ** -64, rel=1e-6)
+
+
+def test_a_codeword_is_recognised_as_the_bch_decoder_would_and_others_go_to_it():
+    from meshseal.payload import SCHEMAS, _bch_decode, _code
+
+    rng = np.random.default_rng(0)
+    for n_bits in SCHEMAS:
+        code = _code(n_bits)
+        for trial in range(40):
+            data = rng.integers(0, 2, code.k).astype(np.uint8)
+            codeword = np.asarray(code.encode(data), dtype=np.uint8)
+            word = np.append(codeword, np.uint8(codeword.sum() % 2))
+            flips = rng.choice(n_bits, trial % (code.t + 3), replace=False)
+            received = word.copy()
+            received[flips] ^= 1
+            decoded, n_errors = code.decode(received[:-1], output="codeword", errors=True)
+            parity = np.uint8(np.asarray(decoded).sum() % 2)
+            expected = None if n_errors < 0 or n_errors + (parity != received[-1]) > code.t else \
+                np.append(np.asarray(decoded, dtype=np.uint8), parity)
+            got = _bch_decode(received)
+            assert (got is None) == (expected is None) and (got is None or np.array_equal(got, expected)), (n_bits, flips)
+            if len(flips) == 0:
+                assert np.array_equal(got, word)

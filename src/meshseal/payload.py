@@ -212,13 +212,23 @@ def _as_soft(soft) -> np.ndarray:
     return values
 
 
+@lru_cache(maxsize=None)
+def _parity_check(n_bits: int) -> np.ndarray:
+    """The BCH code's parity-check matrix (n - k, n) as integers: a word is a codeword where it has no
+    syndrome (most pictures with a mark read one; galois' decoder takes milliseconds to say so)."""
+    return np.asarray(_code(n_bits).H, dtype=np.int64)
+
+
 def _bch_decode(word: np.ndarray) -> np.ndarray | None:
     """The extended-code codeword (N,) nearest to hard bits `word` (N,), or None. A word is accepted
     when the BCH errors plus a mismatched overall parity bit are at most t, so the extended code's
     t + 1 errors are always detected rather than miscorrected."""
     code = _code(len(word))
-    decoded, n_errors = code.decode(word[:-1], output="codeword", errors=True)
-    decoded = np.asarray(decoded, dtype=np.uint8)
+    if not (_parity_check(len(word)) @ word[:-1].astype(np.int64) % 2).any():
+        decoded, n_errors = word[:-1].astype(np.uint8), 0  # a codeword already: the decoder's own answer, at no cost
+    else:
+        decoded, n_errors = code.decode(word[:-1], output="codeword", errors=True)
+        decoded = np.asarray(decoded, dtype=np.uint8)
     parity = np.uint8(decoded.sum() % 2)
     if n_errors < 0 or n_errors + (parity != word[-1]) > code.t:
         return None
