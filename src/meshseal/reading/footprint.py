@@ -31,13 +31,14 @@ class Footprint:
     footprint at the kept pixels; `usable` (P,): the kept pixels that footprint covers wholly; `sigma`
     (B,): NaN for point samples. `fragments`: the rasterization `scale` times finer that sampled each
     pixel's area, and `parent` (F,): the picture pixel (flat index into B*H*W) of each of its
-    fragments; the matched filter's template is built from them."""
+    fragments; the matched filter's template is built from them (None where every picture is read
+    with point samples and they were not formed)."""
 
     expected: torch.Tensor
     usable: torch.Tensor
     sigma: torch.Tensor
     fragments: object
-    parent: torch.Tensor
+    parent: torch.Tensor | None
     scale: int
 
 
@@ -60,18 +61,31 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     from ..models.spread import local_mean, within_reach
     from ..render import rasterize
 
+    from ..render.supersample import box_mean_render, fused
+
     scale = supersampling(height, width)
     n_images = len(cameras)
     relit = found.relit
     positions = relit.positions.expand(n_images, -1, -1) if relit.positions.shape[0] == 1 else relit.positions
+    clip = cameras.world_to_clip(positions, width / height)
+
+    def finer(pix_to_face=None):
+        """The rasterization `scale` times finer, and each fragment's picture pixel."""
+        fine = rasterize(clip, relit.faces, height * scale, width * scale, pix_to_face)
+        within = fine.pixel % (height * scale * width * scale)
+        row = torch.div(within, width * scale, rounding_mode="floor")
+        column = within - row * width * scale
+        return fine, fine.batch * height * width + torch.div(row, scale, rounding_mode="floor") * width + column // scale
+
     # Hard edges: the sub-pixel mean is the antialiasing, and only wholly covered pixels are used.
-    fine = rasterize(cameras.world_to_clip(positions, width / height), relit.faces, height * scale, width * scale)
-    lit = MeshRenderer().shade(relit, cameras, found.lights, fine)
-    within = fine.pixel % (height * scale * width * scale)
-    row = torch.div(within, width * scale, rounding_mode="floor")
-    column = within - row * width * scale
-    parent = fine.batch * height * width + torch.div(row, scale, rounding_mode="floor") * width + column // scale
-    sums = lit.new_zeros(n_images * height * width, 4).index_add_(0, parent, F.pad(lit, (0, 1), value=1.0)) / scale ** 2
+    renderer = MeshRenderer()
+    if fused(relit, renderer.shader):  # on the CPU one compiled pass, without forming the fragments
+        sums, pix_to_face = box_mean_render(relit, cameras, found.lights, height, width, scale)
+        sums, fine, parent = sums.to(found.expected.dtype), None, None
+    else:
+        fine, parent = finer()
+        lit = renderer.shade(relit, cameras, found.lights, fine)
+        sums = lit.new_zeros(n_images * height * width, 4).index_add_(0, parent, F.pad(lit, (0, 1), value=1.0)) / scale ** 2
     kept = found.fragments.pixel.index_select(0, found.keep)
     usable = sums[:, 3].index_select(0, kept) > 0.999
     widths = ((0.0,) if scale > 1 else ()) + tuple(sigmas)
@@ -94,6 +108,8 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     per_pixel = choice.index_select(0, found.image_index)
     expected = torch.stack(candidates).gather(0, per_pixel[None, :, None].expand(1, -1, 3))[0]
     usable = usable | (per_pixel == 0)  # point samples keep every interior pixel, as before
+    if fine is None and bool((choice > 0).any()):  # the template under an area footprint needs the fragments
+        fine, parent = finer(pix_to_face)
     return Footprint(expected, usable, sigma, fine, parent, scale)
 
 

@@ -161,9 +161,12 @@ def visible_faces(clip: torch.Tensor, faces: torch.Tensor, height: int, width: i
     return torch.from_numpy(face_out).to(clip.device)
 
 
-def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int) -> Fragments:
-    """Rasterize clip-space vertices (B, V, 4) with faces (F, 3) shared or (B, F, 3) per element."""
-    pix_to_face = visible_faces(clip, faces, height, width)
+def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int,
+              pix_to_face: torch.Tensor | None = None) -> Fragments:
+    """Rasterize clip-space vertices (B, V, 4) with faces (F, 3) shared or (B, F, 3) per element.
+    `pix_to_face`: `visible_faces` of the same, already worked out."""
+    if pix_to_face is None:
+        pix_to_face = visible_faces(clip, faces, height, width)
     flat = pix_to_face.reshape(-1)
     pixel = torch.nonzero(flat >= 0).squeeze(1)
     face = flat[pixel]
