@@ -73,14 +73,15 @@ def test_the_flat_light_run_is_skipped_only_where_the_first_run_fits(monkeypatch
 
     def fake_refine(mesh, camera, picture, mask, light_from="all", **_):
         runs.append(light_from)
-        return replace(camera, fov_y=camera.fov_y + (1.0 if light_from == "all" else 2.0))
+        return replace(camera, eye=camera.eye + (1.0 if light_from == "all" else 2.0))
 
-    def fake_misfit(mesh, camera, picture, mask, *args, **kwargs):
-        return {60.0: 0.05, 61.0: misfit_after["all"], 62.0: 0.001}[round(camera.fov_y)]
+    def fake_misfits(mesh, cameras, picture, mask, *args, **kwargs):  # which run: the eye's offset from 60
+        return [{60: 0.05, 61: misfit_after["all"], 62: 0.001}[round(float(eye[0]))] for eye in cameras.eye]
 
     monkeypatch.setattr(registration, "refine_on_texture", fake_refine)
-    monkeypatch.setattr(registration, "texture_misfit", fake_misfit)
-    camera = replace(_view()[0], fov_y=60.0)
+    monkeypatch.setattr(registration, "texture_misfits", fake_misfits)
+    monkeypatch.setattr(registration, "texture_misfit", lambda *a, **k: fake_misfits(*a, **k)[0])
+    camera = replace(_view()[0], eye=torch.tensor([[60.0, 0.0, 0.0]]))  # never rendered: the fakes read its eye
     picture, mask = torch.zeros(1, 3, 32, 32), torch.ones(1, 32, 32)
     for after, expected, enough in ((0.01, ["all"], registration.FLAT_ENOUGH), (0.03, ["all", "flat"], registration.FLAT_ENOUGH),
                                     (0.01, ["all", "flat"], 0.0), (0.001, ["all"], 0.0)):
@@ -89,7 +90,21 @@ def test_the_flat_light_run_is_skipped_only_where_the_first_run_fits(monkeypatch
         monkeypatch.setattr(registration, "FLAT_ENOUGH", enough)
         found = registration.refine_on_texture_twice(None, camera, picture, mask)
         assert runs == expected, (after, enough, runs)
-        assert round(found.fov_y) == (62 if "flat" in expected else 61)
+        assert round(float(found.eye[0, 0])) == (62 if "flat" in expected else 61)
+
+
+def test_misfits_in_one_batch_are_those_one_at_a_time():
+    """`texture_misfits` of several cameras (their light fits and renders in one batch) gives each
+    camera's `texture_misfit`, and tells the true view from views a few degrees off."""
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    out = MeshRenderer()(mesh, camera, lights, 96, 96, (0.5, 0.5, 0.5))
+    picture, mask = out.image, (out.rgba[..., 3] > 0.5).float()
+    cameras = _moved(replace(camera, eye=camera.eye.expand(3, 3), at=camera.at.expand(3, 3), up=camera.up.expand(3, 3)),
+                     torch.tensor([[0.0] * 6, [2.0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 1.5, 0]]), 96)
+    together = registration.texture_misfits(mesh, cameras, picture, mask, (1.0, 2.0))
+    alone = [registration.texture_misfit(mesh, cameras[[k]], picture, mask, (1.0, 2.0)) for k in range(3)]
+    assert all(abs(a - b) <= 1e-4 * max(1.0, b) for a, b in zip(together, alone)), (together, alone)
+    assert together[0] < 0.5 * min(together[1:])
 
 
 def test_the_candidates_coarser_light_fit_still_explains_our_renders():

@@ -37,6 +37,8 @@ TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur
 TEXTURE_SIGMAS = (4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
 ROBUST_SCALE = 2.0  # the texture stage's Cauchy scale, in median absolute residuals
 ROBUST_MIN_SIGMA = 2.0  # ... on levels blurred this much or more (finer ones: least squares)
+TEXTURE_DONE = 0.01  # a texture level ends once its step is under this many pixels (a step half as long as one that failed
+TEXTURE_COARSE_DONE = 0.05  # ... would be, it ends there too); on the coarse (robust) levels, which finer ones follow, this
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
 COARSE_SILHOUETTE_SIGMAS = (3.0, 1.5)  # the candidates' silhouette refinement at COMPARE_SIZE (blur, pixels)
 FINE_SILHOUETTE_SIGMAS = (1.0, 0.5)  # the picked candidate's silhouette refinement at SEARCH_SIZE
@@ -576,17 +578,45 @@ def texture_misfit(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
     mostly outside the bands, so a wrong view cannot buy a good score with a wrongly fitted light, as
     it can with the silhouette-and-shading score. Used to pick among candidate views of symmetric
     shapes."""
+    return texture_misfits(mesh, camera, picture, mask, sigmas, margin)[0]
+
+
+def texture_misfits(mesh: MeshBatch, cameras: Cameras, picture: torch.Tensor, mask: torch.Tensor,
+                    sigmas: tuple[float, ...] = (1.0,), margin: int = 2) -> list[float]:
+    """`texture_misfit` of each of several cameras of the same picture, their light fits and renders
+    in one batch (the same numbers as one camera at a time)."""
+    from .relight import relit_residual
+
+    n_cameras = len(cameras)
+    if n_cameras == 0:
+        return []
+    height, width = picture.shape[-2:]
     with torch.no_grad():
-        view = _relit_view(mesh, camera, picture, mask, margin)
-        if view is None:
-            return float("inf")
-        _, rendered, inside = view
-        total = 0.0
-        for sigma in sigmas:
-            band = _band_pass(inside, sigma)
-            target, seen = (band(x).permute(0, 2, 3, 1)[inside] for x in (picture, rendered))
-            total += float(((seen - target) ** 2).sum() / (target ** 2).sum().clamp_min(1e-12))
-        return total
+        pictures = picture.expand(n_cameras, -1, -1, -1)
+        fit = relit_residual(mesh, pictures, cameras)
+        rendered = MeshRenderer(blend="hard")(fit.relit, cameras, fit.lights, height, width).rgba
+        outside = ((rendered[..., 3] < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
+        inside = F.max_pool2d(outside, 2 * margin + 1, 1, margin)[:, 0] < 0.5
+        rendered = rendered[..., :3].permute(0, 3, 1, 2)
+        misfits = []
+        for index in range(n_cameras):
+            seen_inside = inside[index:index + 1]
+            if int(seen_inside.sum()) < 64:
+                misfits.append(float("inf"))
+                continue
+            total = 0.0
+            for sigma in sigmas:
+                band = _band_pass(seen_inside, sigma)
+                target, seen = (band(x).permute(0, 2, 3, 1)[seen_inside] for x in (picture, rendered[index:index + 1]))
+                total += float(((seen - target) ** 2).sum() / (target ** 2).sum().clamp_min(1e-12))
+            misfits.append(total)
+        return misfits
+
+
+def _joined(cameras: list[Cameras]) -> Cameras:
+    """Cameras (one each, same intrinsics) as one batch."""
+    return replace(cameras[0], eye=torch.cat([c.eye for c in cameras]), at=torch.cat([c.at for c in cameras]),
+                   up=torch.cat([c.up for c in cameras]))
 
 
 def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
@@ -600,7 +630,7 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
     run is skipped where the first plainly converged: there it would change nothing and only cost time."""
     picture, mask = _working_size(picture, mask)
     results = [camera, refine_on_texture(mesh, camera, picture, mask, light_from="all")]
-    misfits = [texture_misfit(mesh, c, picture, mask) for c in results]
+    misfits = texture_misfits(mesh, _joined(results), picture, mask)
     if misfits[1] >= FLAT_RETRY * misfits[0] and misfits[1] >= FLAT_ENOUGH:
         results.append(refine_on_texture(mesh, camera, picture, mask, light_from="flat"))
         misfits.append(texture_misfit(mesh, results[-1], picture, mask))
@@ -689,6 +719,8 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         loss = (lambda r: float((r ** 2).sum())) if robust is None else \
             (lambda r: float(torch.log1p((r / robust) ** 2).sum()))  # noqa: E731
         cost = loss(base)
+        # Converged: a hundredth of a pixel; a coarse level, which finer ones follow, a twentieth.
+        done = TEXTURE_DONE if robust is None else TEXTURE_COARSE_DONE
         for _ in range(iterations):
             jacobian = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, fragments)
             weight = torch.ones_like(base) if robust is None else 1.0 / (1.0 + (base / robust) ** 2)
@@ -697,15 +729,21 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
             if not scale > 1e-12:  # a flat band: nothing to align on (or not a number)
                 break
             update = -torch.linalg.solve(normal + 1e-3 * scale * torch.eye(6), jacobian.T @ (weight * base))
+            length = float(update.abs().max())
             for fraction in (1.0, 0.5, 0.25):
+                if fraction < 1.0 and fraction * length < done:  # a step this short would end the level anyway
+                    fraction = None
+                    break
                 trial, trial_banded, trial_fragments = residual(delta + fraction * update, with_image=True)
                 if loss(trial[0]) < cost:
                     break
             else:
                 break
+            if fraction is None:
+                break
             delta, base, banded, fragments = delta + fraction * update, trial[0], trial_banded, trial_fragments
             cost = loss(base)
-            if float((fraction * update).abs().max()) < 0.01:  # converged: a hundredth of a pixel
+            if fraction * length < done:  # converged
                 break
         return _moved(camera, delta, height)
 
@@ -762,8 +800,10 @@ def _refine_candidates(mesh: MeshBatch, cameras: Cameras, levels, margin: float 
     # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
     target, target_mask, _ = levels[SEARCH_SIZE]
     overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
-    misfits = [texture_misfit(mesh, refined[[i]], target, target_mask[:, 0], PICK_SIGMAS)
-               if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK else math.inf for i in range(len(refined))]
+    scored = [i for i in range(len(refined)) if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK]
+    misfits = [math.inf] * len(refined)
+    for i, misfit in zip(scored, texture_misfits(mesh, refined[scored], target, target_mask[:, 0], PICK_SIGMAS)):
+        misfits[i] = misfit
     pick = min(range(len(refined)), key=misfits.__getitem__)
     return refined, misfits, (pick if misfits[pick] < margin * misfits[0] else 0)
 
