@@ -244,31 +244,36 @@ def _clip(mesh: MeshBatch, cameras: Cameras, height: int, width: int) -> torch.T
     return cameras.world_to_clip(positions, width / height)
 
 
-def _rasterized(mesh: MeshBatch, cameras: Cameras, height: int, width: int):
+def _rasterized(mesh: MeshBatch, cameras: Cameras, height: int, width: int, pix_to_face: torch.Tensor | None = None):
     """Fragments and hard coverage (B, H, W) of each camera's view: what the silhouette stages need,
-    without shading."""
+    without shading. `pix_to_face`: the views' visible faces, already worked out (`_overlaps`)."""
     from ..render.rasterizer import rasterize
 
-    fragments = rasterize(_clip(mesh, cameras, height, width), mesh.faces, height, width)
+    fragments = rasterize(_clip(mesh, cameras, height, width), mesh.faces, height, width, pix_to_face)
     return fragments, (fragments.pix_to_face >= 0).to(mesh.positions.dtype)
 
 
-def _overlaps(mesh: MeshBatch, cameras: Cameras, level) -> torch.Tensor:
-    """Silhouette IoU (B,) of cameras against the picture (coverage only)."""
+def _overlaps(mesh: MeshBatch, cameras: Cameras, level, faces_out: list | None = None) -> torch.Tensor:
+    """Silhouette IoU (B,) of cameras against the picture (coverage only); their visible faces (B, S, S)
+    are appended to `faces_out` where given."""
     from ..render.rasterizer import visible_faces
 
     size = level[1].shape[-1]
     with torch.no_grad():
-        cover = visible_faces(_clip(mesh, cameras, size, size), mesh.faces, size, size) >= 0
-        return _iou(cover, level[1][:, 0], level[2][:, 0])
+        faces = visible_faces(_clip(mesh, cameras, size, size), mesh.faces, size, size)
+        if faces_out is not None:
+            faces_out.append(faces)
+        return _iou(faces >= 0, level[1][:, 0], level[2][:, 0])
 
 
-def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float) -> torch.Tensor:
-    """Silhouette IoU - weighted shading misfit (B,) of cameras against the picture."""
+def _scores(mesh: MeshBatch, cameras: Cameras, level, shading_weight: float,
+            pix_to_face: torch.Tensor | None = None) -> torch.Tensor:
+    """Silhouette IoU - weighted shading misfit (B,) of cameras against the picture (`pix_to_face`:
+    their visible faces, where `_overlaps` already found them)."""
     target, target_mask, inside = level
     size = target_mask.shape[-1]
     with torch.no_grad():
-        fragments, cover = _rasterized(mesh, cameras, size, size)
+        fragments, cover = _rasterized(mesh, cameras, size, size, pix_to_face)
         iou = _iou(cover, target_mask[:, 0], inside[:, 0])
         return iou - shading_weight * _shading_misfit(mesh, fragments, cameras, target, target_mask)
 
@@ -502,17 +507,26 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     return camera
 
 
+@dataclass
+class _Fit:
+    """The original relit to match a picture: the mesh with the fitted ambient factors and the lights."""
+
+    relit: MeshBatch
+    lights: object
+
+
 def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, margin: int,
                 light_from: str = "all"):
     """The original relit to match `picture` (1, 3, H, W) from `camera` (`reading.relight.relit_residual`),
     its hard render there (1, 3, H, W) and the interior pixels (1, H, W): on the object in both and at
     least `margin` pixels from any silhouette, so that moves of a pixel or two never bring background
     in. None when fewer than 64 interior pixels are left."""
-    from .relight import relit_residual
+    from .relight import fitted_light
 
     height, width = picture.shape[-2:]
-    fit = relit_residual(mesh, picture, camera, light_from)
-    rendered = MeshRenderer(blend="hard")(fit.relit, camera, fit.lights, height, width).rgba
+    relit, lights = fitted_light(mesh, picture, camera, light_from)
+    fit = _Fit(relit, lights)
+    rendered = MeshRenderer(blend="hard")(relit, camera, lights, height, width).rgba
     outside = ((rendered[..., 3] < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
     inside = F.max_pool2d(outside, 2 * margin + 1, 1, margin)[:, 0] < 0.5
     if int(inside.sum()) < 64:
@@ -585,16 +599,15 @@ def texture_misfits(mesh: MeshBatch, cameras: Cameras, picture: torch.Tensor, ma
                     sigmas: tuple[float, ...] = (1.0,), margin: int = 2) -> list[float]:
     """`texture_misfit` of each of several cameras of the same picture, their light fits and renders
     in one batch (the same numbers as one camera at a time)."""
-    from .relight import relit_residual
+    from .relight import fitted_light
 
     n_cameras = len(cameras)
     if n_cameras == 0:
         return []
     height, width = picture.shape[-2:]
     with torch.no_grad():
-        pictures = picture.expand(n_cameras, -1, -1, -1)
-        fit = relit_residual(mesh, pictures, cameras)
-        rendered = MeshRenderer(blend="hard")(fit.relit, cameras, fit.lights, height, width).rgba
+        relit, lights = fitted_light(mesh, picture.expand(n_cameras, -1, -1, -1), cameras)
+        rendered = MeshRenderer(blend="hard")(relit, cameras, lights, height, width).rgba
         outside = ((rendered[..., 3] < 0.5) | (mask < 0.5)).to(picture.dtype)[:, None]
         inside = F.max_pool2d(outside, 2 * margin + 1, 1, margin)[:, 0] < 0.5
         rendered = rendered[..., :3].permute(0, 3, 1, 2)
@@ -827,12 +840,14 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     # Silhouette overlap first (a render each); the light fits of the shading term only for the views
     # that overlap best.
     chunks = [list(range(first, min(candidates, first + 32))) for first in range(0, candidates, 32)]
-    overlap = torch.cat([_overlaps(mesh, search[chunk], levels[COMPARE_SIZE]) for chunk in chunks])
+    visible = []  # each candidate's visible faces, rasterized once for both scores
+    overlap = torch.cat([_overlaps(mesh, search[chunk], levels[COMPARE_SIZE], visible) for chunk in chunks])
+    visible = torch.cat(visible)
     shortlist = overlap.topk(min(candidates, SHADED_CANDIDATES)).indices.tolist()
     scores = torch.full((candidates,), -math.inf)
     for first in range(0, len(shortlist), 32):
         chunk = shortlist[first:first + 32]
-        scores[chunk] = _scores(mesh, search[chunk], levels[COMPARE_SIZE], shading_weight)
+        scores[chunk] = _scores(mesh, search[chunk], levels[COMPARE_SIZE], shading_weight, visible[chunk])
     best = _distinct(scores, directions, keep)
 
     # 2. Refine the best few coarsely, then the best of them finely, on blurred silhouettes (a wider

@@ -54,6 +54,26 @@ def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch
                    specular=mesh.specular.repeat(n_images, 1), shininess=mesh.shininess.repeat(n_images))
 
 
+def fitted_light(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all"):
+    """`relit_residual`'s fit alone: the original with the fitted ambient factors and the point lights
+    (the same numbers), without rendering the relit original (registration renders it itself)."""
+    with torch.no_grad():
+        _, relit, lights, _ = _fit(mesh, image, cameras, light_from)
+        return relit, lights
+
+
+def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str):
+    """The light fit of `relit_residual`: (fragments, relit mesh, lights, antialiased albedo (P, 3))."""
+    n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
+    unlit = replace(mesh, ambient=torch.full_like(mesh.ambient, 1.0 / K_AMBIENT))
+    flat = MeshRenderer()(unlit, cameras, lights_at(cameras.eye, 0.0), height, width)  # antialiased albedo
+    fragments = flat.fragments
+    albedo = pixels_at(flat.image, fragments)
+    fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
+    _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo, fit_on)
+    return fragments, _with_ambient_per_image(mesh, ambient), lights, albedo
+
+
 def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all") -> RelitResidual:
     """Rasterize the original `mesh` from `cameras` over the picture (B, 3, H, W), fit a point light
     that explains the picture from the original texture (`relight_fragments`) and render the original
@@ -64,14 +84,8 @@ def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light
 
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
     with torch.no_grad():
-        unlit = replace(mesh, ambient=torch.full_like(mesh.ambient, 1.0 / K_AMBIENT))
-        flat = MeshRenderer()(unlit, cameras, lights_at(cameras.eye, 0.0), height, width)  # antialiased albedo
-        fragments = flat.fragments
+        fragments, relit, lights, albedo = _fit(mesh, image, cameras, light_from)
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
-        albedo = pixels_at(flat.image, fragments)
-        fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
-        _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo, fit_on)
-        relit = _with_ambient_per_image(mesh, ambient)
         relit_render = MeshRenderer()(relit, cameras, lights, height, width, fragments=fragments)
         inside = pixels_at(relit_render.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
         keep = torch.nonzero(inside).squeeze(1)
