@@ -55,11 +55,12 @@ def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch
 
 
 def fitted_light(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all"):
-    """`relit_residual`'s fit alone: the original with the fitted ambient factors and the point lights
-    (the same numbers), without rendering the relit original (registration renders it itself)."""
+    """`relit_residual`'s fit alone: the original with the fitted ambient factors, the point lights
+    (the same numbers) and the rasterization they were fitted on (a render of the relit original from
+    `cameras` can reuse it), without rendering the relit original (registration renders it itself)."""
     with torch.no_grad():
-        _, relit, lights, _ = _fit(mesh, image, cameras, light_from)
-        return relit, lights
+        fragments, relit, lights, _ = _fit(mesh, image, cameras, light_from)
+        return relit, lights, fragments
 
 
 def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str):
