@@ -31,7 +31,7 @@ def listed_jpeg(codec) -> tuple | None:
     quantization tables, its chroma subsampling) are, or None: a file saved by Pillow or libjpeg at one
     of the listed qualities is tried with that candidate alone. Tables of another quality or encoder
     keep the full search: the exact tables of a quality between the listed ones (JPEG 92 4:4:4) fit the
-    picture, yet read the default mark worse than the search's choice (benchmarks/README.md)."""
+    picture, yet read the default mark worse than the search's choice (docs/reading.md)."""
     if codec is None:
         return None
     if not _TABLES:
