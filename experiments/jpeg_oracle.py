@@ -15,6 +15,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 import meshseal
@@ -38,6 +39,13 @@ class _Recording(MeshRenderer):
 def _oracle_relit(mesh, image, cameras, **kwargs):
     found = _real_relit(mesh, image, cameras, **kwargs)
     clean = torch.round(_clean[0] * 255) / 255
+    if clean.shape[-2:] != image.shape[-2:]:  # a resized picture: the clean one resized the same way
+        from PIL import Image
+
+        size = (image.shape[-1], image.shape[-2])
+        pixels = (clean[0].permute(1, 2, 0).numpy() * 255).round().astype("uint8")
+        resized = Image.fromarray(pixels).resize(size, Image.BICUBIC)
+        clean = torch.from_numpy(np.asarray(resized).astype("float32") / 255.0).permute(2, 0, 1)[None]
     flat = clean.permute(0, 2, 3, 1).reshape(-1, 3).to(found.expected)
     pixel = found.fragments.pixel.index_select(0, found.keep)
     return replace(found, expected=flat.index_select(0, pixel))

@@ -22,8 +22,8 @@ FIXTURES = Path(__file__).parent / "fixtures"
 SPREAD = ModelConfig(n_bits=64, texture_encoder="spread", decoder="matched")
 
 
-def _marked_and_original(strength: float = 1.0):
-    model = WatermarkModel(SPREAD)
+def _marked_and_original(strength: float = 1.0, config: ModelConfig = SPREAD):
+    model = WatermarkModel(config)
     mesh = normalize(to_z_up(load(FIXTURES / "bunny.glb")))
     message = torch.randint(0, 2, (1, 64), generator=torch.Generator().manual_seed(3)).float()
     texture = mesh.materials[0].texture.permute(2, 0, 1)[None]
@@ -36,9 +36,9 @@ def _quantise(pictures: torch.Tensor) -> torch.Tensor:
     return torch.round(pictures.clamp(0, 1) * 255) / 255
 
 
-def _original_and_marked_batches():
+def _original_and_marked_batches(config: ModelConfig = SPREAD):
     """The bunny, original and marked (strength 1): model, message, original batch, marked batch."""
-    model, mesh, message, _, marked_texture = _marked_and_original()
+    model, mesh, message, _, marked_texture = _marked_and_original(config=config)
     marked = MeshBatch.from_mesh(mesh)
     marked.textures = [marked_texture[0]]
     return model, message, MeshBatch.from_mesh(mesh), marked
@@ -637,3 +637,41 @@ def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(t
     path, result, error = _read_one(watermarker, original, tmp_path / "p.png", True, 60.0, None, None, False)
     assert error is None and result.camera == "registered"  # a Detection, its second look taken in the worker
     assert pickle.loads(pickle.dumps(result)).to_dict() == result.to_dict()
+
+
+def test_a_resized_picture_is_predicted_as_resized(monkeypatch):
+    """A picture rendered at twice its size and resized (bicubic, as image tools resize) is predicted by
+    the original rendered at that size and resized the same way, not by a Gaussian footprint; a
+    luminance mark (whose reading the texture's resampled edges disturb most) reads better for it. A picture blurred as an engine samples keeps its Gaussian footprint."""
+    import functools
+
+    import numpy as np
+    import torch.nn.functional as F
+    from PIL import Image
+
+    import meshseal.methods.spread as spread_module
+    from meshseal.imaging import gaussian_blur
+    from meshseal.methods.spread import spread_evidence
+    from meshseal.models.spread import soft_bits
+    from meshseal.reading.footprint import picture_footprint
+    from meshseal.reading.relight import relit_residual
+
+    grey = replace(SPREAD, mark_colour="grey", texture_psnr=34.0, read_highpass=3.0, read_window=3.0,
+                   read_brightness=-1.0)  # configs/robust.yaml's mark and reading
+    model, message, original, marked = _original_and_marked_batches(grey)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
+    signs = 2 * message - 1
+    with torch.no_grad():
+        large = (MeshRenderer()(marked, cameras, lights, 256, 256).image[0].clamp(0, 1).permute(1, 2, 0) * 255).round()
+        halved = Image.fromarray(large.byte().numpy()).resize((128, 128), Image.Resampling.BICUBIC)
+        picture = torch.from_numpy(np.asarray(halved).astype(np.float32) / 255).permute(2, 0, 1)[None]
+        found = picture_footprint(original, relit_residual(original, picture, cameras), cameras, 128, 128)
+        assert float(found.resized[0]) == 0.5
+        fine = MeshRenderer()(marked, cameras, lights, 512, 512).image
+        area = _quantise(F.avg_pool2d(gaussian_blur(fine, 2.0), 4))
+        blurred = picture_footprint(original, relit_residual(original, area, cameras), cameras, 128, 128)
+        assert bool(blurred.resized.isnan().all()) and float(blurred.sigma[0]) == 0.5
+        resizing = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
+        monkeypatch.setattr(spread_module, "picture_footprint", functools.partial(picture_footprint, resampled=()))
+        gaussian = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
+    assert float((resizing * signs).mean()) > 1.1 * float((gaussian * signs).mean()) > 0

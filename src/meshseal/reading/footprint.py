@@ -17,6 +17,8 @@ from ..render import (
 from .relight import RelitResidual
 
 FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
+RESAMPLED = (0.5, 0.75, 1.5)  # a picture rendered at 1/factor its size and resized (bicubic, antialiased)
+RESAMPLED_TEMPLATE_SIGMA = 0.5  # px: the area footprint whose template reads a resized picture
 LINEAR_LIGHT_SIGMA = 2.0  # px: window of the residual's variance along and across light added in linear light
 LINEAR_LIGHT_RATIO = 1.0  # taken off fully where the variance along it is this many times that across
 LINEAR_LIGHT_DISTINCT = 0.05  # and where its direction differs this much (sine) from the brightness's
@@ -27,7 +29,8 @@ class Footprint:
     """How a picture sampled the surface, as far as the original's texture shows: per picture, point
     samples at pixel centres (our renderer, OpenGL without multisampling) or the average over each
     pixel's area blurred by a Gaussian of `sigma` pixels (antialiasing and pixel filters of Blender and
-    game engines, mipmaps, resizing, blur). `expected` (P, 3): the relit original under each picture's
+    game engines, mipmaps, resizing, blur), or rendered at another size and resized (`resized`).
+    `expected` (P, 3): the relit original under each picture's
     footprint at the kept pixels; `usable` (P,): the kept pixels that footprint covers wholly; `sigma`
     (B,): NaN for point samples. `fragments`: the rasterization `scale` times finer that sampled each
     pixel's area, and `parent` (F,): the picture pixel (flat index into B*H*W) of each of its
@@ -40,6 +43,7 @@ class Footprint:
     fragments: object
     parent: torch.Tensor | None
     scale: int
+    resized: torch.Tensor | None = None  # (B,): the factor a picture was found resized by (NaN: not resized)
 
 
 def supersampling(height: int, width: int) -> int:
@@ -48,14 +52,33 @@ def supersampling(height: int, width: int) -> int:
     return max(1, min(4, 1024 // max(height, width)))
 
 
+def pick_full(image: torch.Tensor, pixel: torch.Tensor) -> torch.Tensor:
+    """Images (B, 3, H, W) at flat pixel indices into (B, H, W) -> (P, 3)."""
+    return image.permute(0, 2, 3, 1).reshape(-1, 3).index_select(0, pixel)
+
+
+def resampled_prediction(relit: MeshBatch, cameras: Cameras, lights, height: int, width: int,
+                         factor: float) -> torch.Tensor:
+    """The relit original as a picture rendered at 1/`factor` of `height` x `width` (point samples)
+    and then resized to it, bicubic with antialiasing (as image tools resize: torch's filter matches
+    Pillow's) -> (B, 3, H, W)."""
+    size = (max(8, round(height / factor)), max(8, round(width / factor)))
+    render = MeshRenderer()(relit, cameras, lights, *size).image
+    return F.interpolate(render, size=(height, width), mode="bicubic", antialias=True, align_corners=False)
+
+
 def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,
-                      sigmas: tuple[float, ...] = FOOTPRINT_SIGMAS) -> Footprint:
+                      sigmas: tuple[float, ...] = FOOTPRINT_SIGMAS,
+                      resampled: tuple[float, ...] = RESAMPLED) -> Footprint:
     """Pick, per picture, the footprint (point samples, or the pixel area blurred by one of `sigmas`)
     under which the relit original best predicts the picture's fine detail: the largest normalised
     correlation between the picture and the prediction, both high-passed (their local mean over the
     object's pixels, sigma 1.5 px, taken off: a relighting misfit is slow and must not decide), over
     the pixels every candidate covers. The pixel's area is the mean of a rasterization `supersampling`
-    times finer, shaded and summed per pixel without forming the finer image. The choice looks at
+    times finer, shaded and summed per pixel without forming the finer image. Where a blurred footprint
+    wins, the original rendered at another size and resized to the picture's (`resampled` factors,
+    `resampled_prediction`) is tried too: a resized picture's bicubic filter is not a Gaussian, and
+    the luminance of a texture's edges shows the difference. The choice looks at
     the picture and the original only, never at a key, so the matched filter's null stays the same."""
     from ..imaging import blur_radius
     from ..models.spread import local_mean, within_reach
@@ -104,13 +127,28 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     power = seen.new_zeros(n_images, len(candidates)).index_add_(0, image, (predicted * predicted).sum(-1))
     scores = torch.nan_to_num(agree / power.sqrt(), nan=-float("inf"))
     choice = scores.argmax(1)  # (B,); a picture with nothing to compare keeps point samples
-    sigma = torch.tensor((float("nan"),) + widths, device=choice.device)[choice]
+    template_sigmas = (float("nan"),) + widths
+    if resampled and bool((choice > 0).any()):  # a blurred picture: was it resized from another size?
+        more = [pick_full(resampled_prediction(relit, cameras, found.lights, height, width, factor), kept)
+                for factor in resampled]
+        extra = torch.stack(more, 1)[usable]
+        predicted = extra - local_mean(extra.reshape(len(pixel), -1), pixel, (n_images, height, width),
+                                       1.5).reshape(extra.shape)
+        agree = torch.cat([agree, seen.new_zeros(n_images, len(more)).index_add_(0, image, (seen * predicted).sum(-1))], 1)
+        power = torch.cat([power, seen.new_zeros(n_images, len(more)).index_add_(0, image, (predicted * predicted).sum(-1))], 1)
+        scores = torch.nan_to_num(agree / power.sqrt(), nan=-float("inf"))
+        choice = scores.argmax(1)
+        candidates = candidates + more
+        template_sigmas = template_sigmas + (RESAMPLED_TEMPLATE_SIGMA,) * len(more)
+    sigma = torch.tensor(template_sigmas, device=choice.device)[choice]
+    factors = torch.tensor((float("nan"),) * (1 + len(widths)) + tuple(resampled), device=choice.device)
+    resized = factors[choice] if len(template_sigmas) == len(factors) else torch.full_like(sigma, float("nan"))
     per_pixel = choice.index_select(0, found.image_index)
     expected = torch.stack(candidates).gather(0, per_pixel[None, :, None].expand(1, -1, 3))[0]
     usable = usable | (per_pixel == 0)  # point samples keep every interior pixel, as before
     if fine is None and bool((choice > 0).any()):  # the template under an area footprint needs the fragments
         fine, parent = finer(pix_to_face)
-    return Footprint(expected, usable, sigma, fine, parent, scale)
+    return Footprint(expected, usable, sigma, fine, parent, scale, resized)
 
 
 def linear_light_direction(expected: torch.Tensor) -> torch.Tensor:
