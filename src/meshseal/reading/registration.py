@@ -37,6 +37,7 @@ TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur
 TEXTURE_SIGMAS = (4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
 ROBUST_SCALE = 2.0  # the texture stage's Cauchy scale, in median absolute residuals
 ROBUST_MIN_SIGMA = 2.0  # ... on levels blurred this much or more (finer ones: least squares)
+FREEZE_DAMPING = 1e-3  # silhouette refinement stops a camera whose step is under 0.01 px at a damping of at most this
 TEXTURE_DONE = 0.01  # a texture level ends once its step is under this many pixels (a step half as long as one that failed
 TEXTURE_COARSE_DONE = 0.05  # ... would be, it ends there too); on the coarse (robust) levels, which finer ones follow, this
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
@@ -405,7 +406,7 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
 
     with torch.no_grad():
         blurred, points, cost = evaluate(start, delta)
-        running = list(range(n_batch))  # the cameras still moving: one whose step is under 0.01 px is done
+        running = list(range(n_batch))  # the cameras still moving
         for _ in range(iterations):
             run = torch.tensor(running)
             some = start if len(running) == n_batch else start[running]
@@ -431,7 +432,8 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
             residual = ((blurred[run].reshape(n_run, -1) - blurred_target) * known).gather(1, pick)
             normal = jacobian.transpose(1, 2) @ jacobian
             scale = normal.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-12)
-            update = -torch.linalg.solve(normal + (damping[run] * scale)[:, None, None] * torch.eye(6),
+            damped = damping[run]
+            update = -torch.linalg.solve(normal + (damped * scale)[:, None, None] * torch.eye(6),
                                          (jacobian.transpose(1, 2) @ residual[..., None])[..., 0])
             trial_blurred, trial_points, trial_cost = evaluate(some, delta[run] + update)
             better = trial_cost < cost[run]
@@ -440,8 +442,10 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
             points[run] = torch.where(better[:, None, None], trial_points, points[run])
             cost[run] = torch.where(better, trial_cost, cost[run])
             damping[run] = torch.where(better, damping[run] * 0.3, damping[run] * 10).clamp(1e-6, 1e6)
-            moving = (update.abs().amax(1) >= 0.01).tolist()
-            running = [camera for camera, still in zip(running, moving) if still]
+            # Done: a step under 0.01 px that is short because the minimum is near, not because damping
+            # (raised by rejected steps) shortened it: a damped camera may yet get going again.
+            done = (update.abs().amax(1) < 0.01) & (damped <= FREEZE_DAMPING)
+            running = [camera for camera, stop in zip(running, done.tolist()) if not stop]
             if not running:
                 break
         return _moved(start, delta, size)
