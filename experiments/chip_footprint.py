@@ -81,7 +81,7 @@ def main() -> None:
             identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
             message = payload.encode(identity, None, wm.model.n_bits)[None]
             with torch.no_grad():
-                marked = wm.model.mark_texture(texture, message, 1.0, payload.key_seed(None))
+                marked = wm.model.texture_encoder(texture, message, 1.0, payload.key_seed(None))
                 cameras, lights = sample_views(1, "seed", generator)
                 renders = [renderer(MeshBatch.from_tensors(positions, normals, uvs, faces, t), cameras, lights, 256, 256,
                                     torch.zeros(1, 3)) for t in (texture, marked)]

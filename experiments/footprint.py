@@ -44,7 +44,7 @@ def pictures(model, dataset: MeshDataset, index: int):
     batch = collate([dataset[index]], "cpu")
     positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
     message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float()
-    marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None))
+    marked = model.texture_encoder(texture, message, 1.0, payload.key_seed(None))
     cameras, lights = sample_views(1, "seed", generator)
     background = random_backgrounds(1, generator)
     mesh = MeshBatch.from_tensors(positions, normals, uvs, faces, marked)

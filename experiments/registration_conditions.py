@@ -94,7 +94,7 @@ def main() -> None:
             message = payload.encode(identity, None, model.n_bits)[None]
             size = int(condition) if condition.isdigit() else 256
             with torch.no_grad():
-                marked = model.mark_texture(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model, batch),
+                marked = model.texture_encoder(texture, message, 1.0, payload.key_seed(None), batch_mark_grid(model.texture_encoder, batch),
                                             batch_texels_used(batch))
                 cameras, lights = sample_views(1, "seed", generator)
                 if condition == "cut":
