@@ -11,7 +11,7 @@ albedo * seen / expected, the relit original's shading divided out, splatted wit
 texels not seen keep the original texture) and running the library's extractor on it. The baseline read straight
 from its marked texture checks that it decodes at that strength at all.
 
-    pip install -e '.[baseline]'   # blind-watermark (numpy, opencv-python, PyWavelets; no torch)
+    pip install -e '.[baseline]' && pip install --no-deps blind-watermark   # (its opencv-python would shadow opencv-python-headless)
     pip install --no-deps invisible-watermark   # only for --library invisible-watermark (it lists torch)
     python benchmarks/classical_baseline.py [--views 4] [--seed 0] [--library NAME] [--data DIR --meshes N]
         [--models default,robust] [--attacks none,jpeg90,jpeg75,jpeg50,webp80,brightness,noise2]
