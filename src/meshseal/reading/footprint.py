@@ -19,6 +19,7 @@ from .relight import RelitResidual
 FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
 RESAMPLED = (0.5, 0.75, 1.5)  # a picture rendered at 1/factor its size and resized (bicubic, antialiased)
 RESAMPLED_TEMPLATE_SIGMA = 0.5  # px: the area footprint whose template reads a resized picture
+RESAMPLED_LARGEST = 1024  # px: no resized prediction is rendered larger than this a side
 LINEAR_LIGHT_SIGMA = 2.0  # px: window of the residual's variance along and across light added in linear light
 LINEAR_LIGHT_RATIO = 1.0  # taken off fully where the variance along it is this many times that across
 LINEAR_LIGHT_DISTINCT = 0.05  # and where its direction differs this much (sine) from the brightness's
@@ -128,6 +129,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     scores = torch.nan_to_num(agree / power.sqrt(), nan=-float("inf"))
     choice = scores.argmax(1)  # (B,); a picture with nothing to compare keeps point samples
     template_sigmas = (float("nan"),) + widths
+    resampled = tuple(f for f in resampled if max(height, width) / f <= RESAMPLED_LARGEST)
     if resampled and bool((choice > 0).any()):  # a blurred picture: was it resized from another size?
         more = [pick_full(resampled_prediction(relit, cameras, found.lights, height, width, factor), kept)
                 for factor in resampled]
