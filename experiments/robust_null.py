@@ -4,7 +4,7 @@ whose reading picks the picture's codec). Without a mark the detection p-values 
 larger: reports per attack the pictures, how many reach the FPR 1e-6 threshold, the smallest p-value,
 the share under 0.01 and 0.1, and a Kolmogorov-Smirnov p-value against uniform.
 
-    python experiments/robust_null.py --data data --meshes 200 [--views 1] [--model robust] [--json OUT] [--register]
+    python experiments/robust_null.py --data data --meshes 200 [--start 0] [--views 1] [--model robust] [--json OUT] [--register]
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--meshes", type=int, default=200)
+    parser.add_argument("--start", type=int, default=0, help="the first test mesh (runs can share the split)")
     parser.add_argument("--views", type=int, default=1)
     parser.add_argument("--model", default="robust")
     parser.add_argument("--attacks", default="none,jpeg95,jpeg90,jpeg75,jpeg50,webp80,brightness,noise2")
@@ -46,7 +47,7 @@ def main() -> None:
     generator, rng = torch.Generator().manual_seed(7), np.random.default_rng(7)
     p_values = {name: [] for name in attacks}
     started = time.time()
-    for index in range(min(args.meshes, len(dataset))):
+    for index in range(args.start, min(args.start + args.meshes, len(dataset))):
         batch = charted_item(collate([dataset[index]], "cpu"))
         original = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces", "texture")))
         cameras, lights = sample_views(args.views, "seed", generator)
@@ -64,7 +65,7 @@ def main() -> None:
                 except meshseal.MeshsealError:
                     continue
                 p_values[name].append(watermarker.decide([reading]).p_value)
-        if (index + 1) % 25 == 0:
+        if (index + 1 - args.start) % 25 == 0:
             print(f"{index + 1} meshes, {sum(map(len, p_values.values()))} pictures, {time.time() - started:.0f} s",
                   file=sys.stderr, flush=True)
     print(f"{args.model}: unmarked test meshes, {args.views} view(s) each, "
