@@ -1,27 +1,14 @@
 """Registration's shortcuts (issue #46): each does the work it replaces, on the fixtures."""
 
 from dataclasses import replace
-from pathlib import Path
 
 import torch
 
-from meshseal.mesh import load, normalize, to_z_up
 from meshseal.reading import registration
 from meshseal.reading.registration import _hull_points, _moved, _refine_silhouettes, _targets, frame_picture
-from meshseal.render import (MeshBatch, MeshRenderer, clip_to_screen, pixels_at, relight_fragments, sample_any_lights,
-                             sample_any_view_cameras)
+from meshseal.render import (MeshRenderer, clip_to_screen, pixels_at, relight_fragments, sample_any_view_cameras)
 
-FIXTURES = Path(__file__).parent / "fixtures"
-
-
-def _bunny():
-    return MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "bunny.glb"))))
-
-
-def _view(seed=3, index=1):
-    generator = torch.Generator().manual_seed(seed)
-    cameras, lights = sample_any_view_cameras(3, generator), sample_any_lights(3, generator)
-    return cameras[[index]], lights[[index]]
+from test_informed import _bunny, _view
 
 
 def test_the_hull_frames_the_object_as_all_its_vertices_do():
