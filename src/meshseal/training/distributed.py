@@ -59,7 +59,11 @@ def join(device: str) -> tuple[World, str]:
 
 
 def leave(world: World) -> None:
+    """Leave the process group once every process has finished (the main one validates and writes
+    after the last step while the others are done): no process tears its connections down while
+    another may still use them."""
     if world.distributed and dist.is_initialized():
+        dist.barrier()
         dist.destroy_process_group()
 
 

@@ -299,12 +299,12 @@ class Trainer:
         size = self.model.config.frame_size
         surface = self.model.vertex_encoder is not None
         distort = Distortions3D(cfg.distortion_3d, p_rotation=0.0 if surface else 0.25) if cfg.distortion_3d > 0 else None
+        if self.world.distributed and not self.world.main:
+            torch.distributed.barrier()  # the main process bakes both banks; the others then read its files
         train = cached_bake(self.train_set.dataset, folder / bake_key("train", cfg.texture_kinds, cfg.gbuffer_views, size,
                                                                      cfg.sampler, self.config.seed, cfg.distortion_3d,
                                                                      surface),
                             cfg.gbuffer_views, size, cfg.sampler, self.config.seed, distort, self.log, surface)
-        if self.world.distributed and not self.world.main:
-            torch.distributed.barrier()  # the main process bakes; the others read its files
         val_views = min(len(self.val_set), cfg.val_meshes)
         val_set = torch.utils.data.Subset(self.val_set, range(val_views))
         test = cached_bake(val_set, folder / bake_key("test", cfg.texture_kinds, 1, size, cfg.sampler,
