@@ -212,7 +212,8 @@ def _resized(texture: torch.Tensor, size) -> torch.Tensor:
 def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float) -> torch.Tensor:
     """Gaussian mean (sigma px) of values (P,) or (P, C) at covered pixels, over the covered pixels
     only (the background does not bleed in). pixel (P,): flat indices into the (B, H, W) `shape`."""
-    from ..imaging import blur_radius, gaussian_blur
+    from ..imaging import blur_radius
+    from ..render.blur import gaussian_blur  # compiled on the CPU, the same bits
 
     flat = values[:, None] if values.dim() == 1 else values
     channels = flat.shape[1]

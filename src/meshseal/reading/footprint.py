@@ -8,7 +8,6 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from ..imaging import gaussian_blur
 from ..render import (
     Cameras,
     MeshBatch,
@@ -84,7 +83,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     from ..imaging import blur_radius
     from ..models.spread import local_mean, within_reach
     from ..render import rasterize
-
+    from ..render.blur import gaussian_blur  # compiled on the CPU, the same bits
     from ..render.supersample import box_mean_render, fused
 
     scale = supersampling(height, width)
