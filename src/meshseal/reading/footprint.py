@@ -84,7 +84,8 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     from ..models.spread import local_mean, within_reach
     from ..render import rasterize
     from ..render.blur import gaussian_blur  # compiled on the CPU, the same bits
-    from ..render.supersample import box_mean_render, fused
+    from ..render.rasterizer import whole_raster
+    from ..render.supersample import box_mean_window, fused
 
     scale = supersampling(height, width)
     n_images = len(cameras)
@@ -103,7 +104,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     # Hard edges: the sub-pixel mean is the antialiasing, and only wholly covered pixels are used.
     renderer = MeshRenderer()
     if fused(relit, renderer.shader):  # on the CPU one compiled pass, without forming the fragments
-        sums, pix_to_face = box_mean_render(relit, cameras, found.lights, height, width, scale)
+        sums, window, corner = box_mean_window(relit, cameras, found.lights, height, width, scale)
         sums, fine, parent = sums.to(found.expected.dtype), None, None
     else:
         fine, parent = finer()
@@ -148,7 +149,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     expected = torch.stack(candidates).gather(0, per_pixel[None, :, None].expand(1, -1, 3))[0]
     usable = usable | (per_pixel == 0)  # point samples keep every interior pixel, as before
     if fine is None and bool((choice > 0).any()):  # the template under an area footprint needs the fragments
-        fine, parent = finer(pix_to_face)
+        fine, parent = finer(whole_raster(window, corner, height * scale, width * scale))
     return Footprint(expected, usable, sigma, fine, parent, scale, resized)
 
 

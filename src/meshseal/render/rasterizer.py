@@ -18,8 +18,9 @@ import torch
 
 
 @numba.njit(cache=True)
-def _zbuffer_one(xy, z, w, faces, near, face_out, depth):  # pragma: no cover - compiled
-    height, width = face_out.shape
+def _zbuffer_one(xy, z, w, faces, near, face_out, depth, top, left, height, width):  # pragma: no cover - compiled
+    """Rows top.. and columns left.. of a height x width raster: face_out[row - top, col - left]."""
+    bottom, right = top + face_out.shape[0] - 1, left + face_out.shape[1] - 1
     for f in range(faces.shape[0]):
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
         if w[i0] <= near or w[i1] <= near or w[i2] <= near:
@@ -30,10 +31,10 @@ def _zbuffer_one(xy, z, w, faces, near, face_out, depth):  # pragma: no cover - 
         area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
         if abs(area) < 1e-12:
             continue
-        col_lo = max(int(math.ceil(min(x0, x1, x2) - 0.5)), 0)
-        col_hi = min(int(math.floor(max(x0, x1, x2) - 0.5)), width - 1)
-        row_lo = max(int(math.ceil(min(y0, y1, y2) - 0.5)), 0)
-        row_hi = min(int(math.floor(max(y0, y1, y2) - 0.5)), height - 1)
+        col_lo = max(int(math.ceil(min(x0, x1, x2) - 0.5)), 0, left)
+        col_hi = min(int(math.floor(max(x0, x1, x2) - 0.5)), width - 1, right)
+        row_lo = max(int(math.ceil(min(y0, y1, y2) - 0.5)), 0, top)
+        row_hi = min(int(math.floor(max(y0, y1, y2) - 0.5)), height - 1, bottom)
         z0, z1, z2 = z[i0], z[i1], z[i2]
         inv_area = 1.0 / area
         for row in range(row_lo, row_hi + 1):
@@ -48,16 +49,17 @@ def _zbuffer_one(xy, z, w, faces, near, face_out, depth):  # pragma: no cover - 
                 depth_here = l0 * z0 + l1 * z1 + l2 * z2
                 if depth_here < -1.0 or depth_here > 1.0:
                     continue
-                if depth_here < depth[row, col]:
-                    depth[row, col] = depth_here
-                    face_out[row, col] = f
+                if depth_here < depth[row - top, col - left]:
+                    depth[row - top, col - left] = depth_here
+                    face_out[row - top, col - left] = f
 
 
 @numba.njit(parallel=True, cache=True)
-def _zbuffer(xy, z, w, faces, near, face_out, depth):  # pragma: no cover - compiled
+def _zbuffer(xy, z, w, faces, near, face_out, depth, top, left, height, width):  # pragma: no cover - compiled
     n_faces_sets = faces.shape[0]
     for b in numba.prange(xy.shape[0]):
-        _zbuffer_one(xy[b], z[b], w[b], faces[min(np.int64(b), n_faces_sets - 1)], near, face_out[b], depth[b])
+        _zbuffer_one(xy[b], z[b], w[b], faces[min(np.int64(b), n_faces_sets - 1)], near, face_out[b], depth[b],
+                     top, left, height, width)
 
 
 @numba.njit(cache=True)
@@ -147,6 +149,27 @@ def _batched_faces(faces: torch.Tensor) -> torch.Tensor:
 def visible_faces(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int,
                   near: float = 1e-5) -> torch.Tensor:
     """(B, H, W) index of the front-most face at each pixel centre, -1 for background (no gradient)."""
+    return _visible(clip, faces, height, width, near, None)[0]
+
+
+def visible_faces_within(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int, near: float = 1e-5,
+                         align: int = 1) -> tuple[torch.Tensor, tuple[int, int]]:
+    """`visible_faces` over the window of the (B, H, W) raster that the vertices in front of the camera
+    span (every pixel outside it is background): (B, h, w) and the window's (top, left) corner, its
+    edges on multiples of `align` pixels. The same faces at the same pixels, without filling and
+    scanning the rest of a large raster."""
+    return _visible(clip, faces, height, width, near, align)
+
+
+def whole_raster(window: torch.Tensor, corner: tuple[int, int], height: int, width: int) -> torch.Tensor:
+    """`visible_faces_within`'s window (B, h, w) at `corner` back in its whole (B, height, width) raster."""
+    top, left = corner
+    whole = window.new_full((window.shape[0], height, width), -1)
+    whole[:, top: top + window.shape[1], left: left + window.shape[2]] = window
+    return whole
+
+
+def _visible(clip, faces, height, width, near, align):
     with torch.no_grad():
         clip64 = clip.detach().to("cpu", torch.float64)
         xy = clip_to_screen(clip64, height, width).numpy()
@@ -154,11 +177,25 @@ def visible_faces(clip: torch.Tensor, faces: torch.Tensor, height: int, width: i
         w = clip64[..., 3].numpy()
         face_array = _batched_faces(faces).detach().to("cpu", torch.int64).numpy()
         n_batch = clip.shape[0]
-        face_out = np.full((n_batch, height, width), -1, dtype=np.int64)
-        depth = np.full((n_batch, height, width), np.inf, dtype=np.float64)
-        _zbuffer(np.ascontiguousarray(xy), np.ascontiguousarray(z), np.ascontiguousarray(w),
-                 np.ascontiguousarray(face_array), near, face_out, depth)
-    return torch.from_numpy(face_out).to(clip.device)
+        top, left, bottom, right = 0, 0, height, width
+        if align is not None:  # the pixels any face drawn can reach: within its vertices' box
+            front = xy[w > near]
+            if len(front) == 0:
+                top, left, bottom, right = 0, 0, 0, 0
+            elif np.isfinite(front).all():
+                low, high = front.min(0), front.max(0)
+                left = min(max(math.ceil(low[0] - 0.5), 0), width) // align * align
+                top = min(max(math.ceil(low[1] - 0.5), 0), height) // align * align
+                right = max(min(math.floor(high[0] - 0.5) + 1, width), left)
+                bottom = max(min(math.floor(high[1] - 0.5) + 1, height), top)
+                right = min(-(-right // align) * align, width)
+                bottom = min(-(-bottom // align) * align, height)
+        face_out = np.full((n_batch, bottom - top, right - left), -1, dtype=np.int64)
+        depth = np.full((n_batch, bottom - top, right - left), np.inf, dtype=np.float64)
+        if face_out.size:
+            _zbuffer(np.ascontiguousarray(xy), np.ascontiguousarray(z), np.ascontiguousarray(w),
+                     np.ascontiguousarray(face_array), near, face_out, depth, top, left, height, width)
+    return torch.from_numpy(face_out).to(clip.device), (top, left)
 
 
 def rasterize(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int,

@@ -17,15 +17,15 @@ import torch
 import torch.nn.functional as F
 
 from .lighting import ATTENUATION, K_AMBIENT, K_DIFFUSE
-from .rasterizer import visible_faces
+from .rasterizer import visible_faces_within, whole_raster
 
 
 @numba.njit(cache=True)
-def _box_sums(pix_to_face, clip, faces, positions, normals, uvs, has_uv, face_material, texels, texel_offset,
-              texel_height, texel_width, textured, diffuse, ambient, eye, light_position, light_intensity, half,
-              scale, k_ambient, k_diffuse, attenuation, sums):  # pragma: no cover - compiled
-    fine_height, fine_width = pix_to_face.shape
-    width = fine_width // scale
+def _box_sums(pix_to_face, first_row, first_col, width, clip, faces, positions, normals, uvs, has_uv, face_material, texels,
+              texel_offset, texel_height, texel_width, textured, diffuse, ambient, eye, light_position,
+              light_intensity, half, scale, k_ambient, k_diffuse, attenuation, sums):  # pragma: no cover - compiled
+    """pix_to_face: the window of the finer raster from (first_row, first_col) on; width: the picture's."""
+    window_height, window_width = pix_to_face.shape
     one = np.float32(1.0)
     zero = np.float32(0.0)
     eps = np.float32(1e-12)
@@ -34,12 +34,14 @@ def _box_sums(pix_to_face, clip, faces, positions, normals, uvs, has_uv, face_ma
     for v in range(clip.shape[0]):
         screen_x[v] = half[0] + (clip[v, 0] / clip[v, 3]) * half[0]
         screen_y[v] = half[1] + (clip[v, 1] / clip[v, 3]) * (-half[1])
-    for row in range(fine_height):
+    for window_row in range(window_height):
+        row = first_row + window_row
         py = np.float32(row) + np.float32(0.5)
-        for col in range(fine_width):
-            f = pix_to_face[row, col]
+        for window_col in range(window_width):
+            f = pix_to_face[window_row, window_col]
             if f < 0:
                 continue
+            col = first_col + window_col
             px = np.float32(col) + np.float32(0.5)
             i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
             w0, w1, w2 = clip[i0, 3], clip[i1, 3], clip[i2, 3]
@@ -143,11 +145,20 @@ def box_mean_render(mesh, cameras, lights, height: int, width: int, scale: int) 
     `cameras` under point `lights`: the mean over its scale x scale sub-pixels of the lit colour, hard
     edges (sub-pixels off the object count as 0), and the share of them the object covers ->
     (B * H * W, 4), and the finer rasterization's face index (B, scale H, scale W) (-1: background)."""
+    sums, window, corner = box_mean_window(mesh, cameras, lights, height, width, scale)
+    return sums, whole_raster(window, corner, height * scale, width * scale)
+
+
+def box_mean_window(mesh, cameras, lights, height: int, width: int,
+                    scale: int) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
+    """`box_mean_render`, with the finer rasterization's face index over the window of it that the
+    object can cover alone (`rasterizer.visible_faces_within`, whose `whole_raster` is the rest):
+    (B * H * W, 4), the window (B, h, w) and its (top, left) corner in fine pixels."""
     n_images = len(cameras)
     dtype = torch.float32
     positions = mesh.positions.expand(n_images, -1, -1) if mesh.positions.shape[0] == 1 else mesh.positions
     clip = cameras.world_to_clip(positions, width / height)
-    pix_to_face = visible_faces(clip, mesh.faces, height * scale, width * scale)
+    pix_to_face, (top, left) = visible_faces_within(clip, mesh.faces, height * scale, width * scale, align=scale)
     texels, offsets, heights, widths, present = _packed_textures(mesh.textures)
     array = lambda t: np.ascontiguousarray(t.detach().to("cpu", dtype).numpy())  # noqa: E731
     half = np.array([0.5 * width * scale, 0.5 * height * scale], np.float32)
@@ -157,7 +168,7 @@ def box_mean_render(mesh, cameras, lights, height: int, width: int, scale: int) 
     material = mesh.face_material if mesh.face_material.dim() == 2 else mesh.face_material.unsqueeze(0)
     has_uv = mesh.uvs is not None
     for b in range(n_images):
-        _box_sums(pix_to_face[b].numpy(), array(clip[b]), np.ascontiguousarray(per_image(faces, b).cpu().numpy().astype(np.int64)),
+        _box_sums(pix_to_face[b].numpy(), top, left, width, array(clip[b]), np.ascontiguousarray(per_image(faces, b).cpu().numpy().astype(np.int64)),
                   array(per_image(mesh.positions, b)), array(per_image(mesh.normals, b)),
                   array(per_image(mesh.uvs, b)) if has_uv else np.zeros((1, 2), np.float32), has_uv,
                   np.ascontiguousarray(per_image(material, b).cpu().numpy().astype(np.int64)), texels, offsets, heights,
@@ -165,4 +176,4 @@ def box_mean_render(mesh, cameras, lights, height: int, width: int, scale: int) 
                   array(lights.position[b]), array(lights.intensity[b]), half, scale, np.float32(K_AMBIENT),
                   np.float32(K_DIFFUSE), np.array(ATTENUATION, np.float32), sums[b])
     sums /= np.float32(scale * scale)
-    return torch.from_numpy(sums.reshape(-1, 4)), pix_to_face
+    return torch.from_numpy(sums.reshape(-1, 4)), pix_to_face, (top, left)
