@@ -17,6 +17,20 @@ import numpy as np
 import torch
 
 
+SPAN_REACH = 1e6  # px: screen coordinates under this solve a row's span to well under a pixel
+SPAN_SLOPE = 1e-3  # an edge whose function changes less than this a pixel along a row bounds no span
+
+
+@numba.njit(cache=True)
+def _edge_span(offset, slope, first, last):  # pragma: no cover - compiled
+    """Columns first..last narrowed to those within a pixel of where offset + slope * (col + 0.5) >= 0."""
+    if slope > SPAN_SLOPE:
+        first = max(first, int(math.ceil(-offset / slope - 0.5)) - 1)
+    elif slope < -SPAN_SLOPE:
+        last = min(last, int(math.floor(-offset / slope - 0.5)) + 1)
+    return first, last
+
+
 @numba.njit(cache=True)
 def _zbuffer_one(xy, z, w, faces, near, face_out, depth, top, left, height, width):  # pragma: no cover - compiled
     """Rows top.. and columns left.. of a height x width raster: face_out[row - top, col - left]."""
@@ -37,9 +51,19 @@ def _zbuffer_one(xy, z, w, faces, near, face_out, depth, top, left, height, widt
         row_hi = min(int(math.floor(max(y0, y1, y2) - 0.5)), height - 1, bottom)
         z0, z1, z2 = z[i0], z[i1], z[i2]
         inv_area = 1.0 / area
+        # Each row's columns are those of the box within a pixel of the triangle's edges (solved for
+        # along the row): the exact test below decides them all, as over the whole box, and the box's
+        # other pixels would fail it. Far off screen (or not finite) the box is scanned whole.
+        spans = max(abs(x0), abs(x1), abs(x2), abs(y0), abs(y1), abs(y2)) < SPAN_REACH
+        sign = 1.0 if area > 0.0 else -1.0
         for row in range(row_lo, row_hi + 1):
             py = row + 0.5
-            for col in range(col_lo, col_hi + 1):
+            first, last = col_lo, col_hi
+            if spans:
+                first, last = _edge_span(sign * (x1 * (y2 - py) - x2 * (y1 - py)), sign * (y1 - y2), first, last)
+                first, last = _edge_span(sign * (x2 * (y0 - py) - x0 * (y2 - py)), sign * (y2 - y0), first, last)
+                first, last = _edge_span(sign * (x0 * (y1 - py) - x1 * (y0 - py)), sign * (y0 - y1), first, last)
+            for col in range(first, last + 1):
                 px = col + 0.5
                 l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv_area
                 l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv_area
