@@ -219,9 +219,10 @@ def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int,
     channels = flat.shape[1]
     pixel, shape, _ = within_reach(pixel, shape, blur_radius(sigma))
     planes = values.new_zeros(channels + 1, shape[0] * shape[1] * shape[2])
-    planes[:channels, pixel], planes[channels, pixel] = flat.T, 1.0
+    planes[:channels].index_copy_(1, pixel, flat.T)  # (index_copy_ and index_select: cheaper than [:, pixel])
+    planes[channels].index_fill_(0, pixel, 1.0)
     blurred = gaussian_blur(planes.reshape(channels + 1, shape[0], shape[1], shape[2]).transpose(0, 1), sigma)
-    blurred = blurred.transpose(0, 1).reshape(channels + 1, -1)[:, pixel]
+    blurred = blurred.transpose(0, 1).reshape(channels + 1, -1).index_select(1, pixel)
     return (blurred[:channels] / blurred[channels:].clamp_min(1e-6)).T.reshape(values.shape)
 
 
@@ -347,8 +348,7 @@ def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: in
     sum_i w_bi s_i with the key's cell signs s_i, independent fair coins without a mark."""
     assign, _ = encoder.pattern(key_seed, math.isqrt(sums.shape[1]))
     assign = assign.to(sums.device)
-    order = torch.argsort(assign, stable=True)
-    counts = torch.bincount(assign, minlength=encoder.n_bits)
+    order, counts = _grouping(assign, encoder.n_bits)
     grouped = sums.index_select(1, order).abs()
     if bool((counts == counts[0]).all()):  # every bit the same number of cells: a reshape
         weights = grouped.reshape(len(sums), encoder.n_bits, int(counts[0]))
@@ -357,6 +357,20 @@ def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: in
         weights = sums.new_zeros(len(sums), encoder.n_bits, int(counts.max()))
         weights[:, assign[order], slot] = grouped
     return weights / weights.pow(2).sum(-1, keepdim=True).sqrt().clamp_min(1e-30)
+
+
+_GROUPINGS: list = []  # (assignment, its version, bits, (order, counts)): the last few patterns read
+
+
+def _grouping(assign: torch.Tensor, n_bits: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The cells of `assign` ordered by bit (stable) and each bit's count, worked out once per pattern
+    (every picture read under one key uses the same)."""
+    for kept, version, bits, grouping in _GROUPINGS:
+        if kept is assign and version == assign._version and bits == n_bits:
+            return grouping
+    grouping = torch.argsort(assign, stable=True), torch.bincount(assign, minlength=n_bits)
+    _GROUPINGS[:] = [(assign, assign._version, n_bits, grouping)] + _GROUPINGS[:3]
+    return grouping
 
 
 def cell_pixels(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, chips: int) -> float:

@@ -117,7 +117,8 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     local, (_, rows, columns), (top, left) = within_reach(kept, (n_images, height, width), blur_radius(max(widths)))
     averaged = sums[:, :3].reshape(n_images, height, width, 3)[:, top: top + rows, left: left + columns]
     averaged = averaged.permute(0, 3, 1, 2)
-    pick = lambda image: image.permute(0, 2, 3, 1).reshape(-1, 3).index_select(0, local)  # noqa: E731
+    # each blur's values at the kept pixels, gathered plane by plane (P, 3)
+    pick = lambda image: image.transpose(0, 1).reshape(3, -1).index_select(1, local).T  # noqa: E731
     candidates = [found.expected] + [pick(gaussian_blur(averaged, s)) for s in widths]
     pixel = kept[usable]
     image = found.image_index[usable]

@@ -82,14 +82,46 @@ def estimate_background(image: np.ndarray) -> np.ndarray:
     return np.median(border_pixels(image), axis=0)
 
 
+@functools.lru_cache(maxsize=4)
+def _plane_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`background_plane`'s pixel rows and columns (H, W), its design matrix over the whole picture
+    (H, W, 3) and the border (H, W) bool, for pictures of one size (read-only: shared between calls)."""
+    ys, xs = np.mgrid[0:height, 0:width]
+    whole = np.stack([np.ones_like(xs, dtype=np.float64), xs / width, ys / height], -1)
+    border = np.zeros((height, width), dtype=bool)
+    border[0], border[-1], border[:, 0], border[:, -1] = True, True, True, True
+    for array in (ys, xs, whole, border):
+        array.flags.writeable = False
+    return ys, xs, whole, border
+
+
+def _opening(mask: np.ndarray) -> np.ndarray:
+    """`scipy.ndimage.binary_opening(mask, iterations=1)` of a 2-D mask (the cross-shaped structure,
+    nothing outside the picture), by shifts: the same pixels, without scipy's general machinery."""
+    if mask.ndim != 2 or min(mask.shape) < 3:
+        from scipy import ndimage
+
+        return ndimage.binary_opening(mask, iterations=1)
+    eroded = mask.copy()
+    eroded[1:] &= mask[:-1]
+    eroded[:-1] &= mask[1:]
+    eroded[:, 1:] &= mask[:, :-1]
+    eroded[:, :-1] &= mask[:, 1:]
+    eroded[0], eroded[-1], eroded[:, 0], eroded[:, -1] = False, False, False, False
+    opened = eroded.copy()
+    opened[1:] |= eroded[:-1]
+    opened[:-1] |= eroded[1:]
+    opened[:, 1:] |= eroded[:, :-1]
+    opened[:, :-1] |= eroded[:, 1:]
+    return opened
+
+
 def background_plane(image: np.ndarray, threshold: float = 0.03, rounds: int = 3) -> np.ndarray:
     """The picture's background (H, W, 3) as a linear ramp per channel (a plain colour is the flat
     case) fitted to the border by least squares; border pixels more than `threshold` off the fit (the
     object touching the frame) are dropped and the fit repeated."""
     height, width = image.shape[:2]
-    ys, xs = np.mgrid[0:height, 0:width]
-    border = np.zeros((height, width), dtype=bool)
-    border[0], border[-1], border[:, 0], border[:, -1] = True, True, True, True
+    ys, xs, whole, border = _plane_grid(height, width)
     design = lambda y, x: np.stack([np.ones_like(x, dtype=np.float64), x / width, y / height], -1)  # noqa: E731
     rows, columns = ys[border], xs[border]
     values = image[border].astype(np.float64)
@@ -100,7 +132,7 @@ def background_plane(image: np.ndarray, threshold: float = 0.03, rounds: int = 3
         if off.all() or (~off == keep).all():
             break
         keep = ~off
-    return (design(ys, xs) @ coefficients).astype(image.dtype)
+    return (whole @ coefficients).astype(image.dtype)
 
 
 def object_mask(image: np.ndarray, threshold: float = 0.03, trim: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +152,7 @@ def object_mask(image: np.ndarray, threshold: float = 0.03, trim: bool = True) -
     plane = background_plane(image, threshold)
     off = np.abs(image - plane)
     mask = functools.reduce(np.maximum, np.moveaxis(off, -1, 0)) > threshold  # .max(-1), channel by channel: faster
-    mask = ndimage.binary_opening(mask, iterations=1)
+    mask = _opening(mask)
     labels, count = ndimage.label(mask)
     if count > 1:
         sizes = ndimage.sum(mask, labels, index=np.arange(1, count + 1))

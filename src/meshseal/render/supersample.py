@@ -116,9 +116,29 @@ def _box_sums(pix_to_face, first_row, first_col, width, clip, faces, positions, 
             sums[parent, 3] += one
 
 
+_PACKED: list = []  # (textures, their versions, packed): the last few, kept alive so their memory is not reused
+
+
+def _signature(texture) -> tuple | None:
+    if texture is None:
+        return None
+    return texture.data_ptr(), texture.shape, texture.stride(), texture.dtype, texture.device, texture._version
+
+
 def _packed_textures(textures) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Textures (a list of (3, H, W) or None) padded by one texel circularly, channels last, one after
-    another: (N, 3) float32, with each one's offset, height, width and whether it is there."""
+    another: (N, 3) float32, with each one's offset, height, width and whether it is there. Packed once
+    for the same unmodified textures (every picture of one original: a folder of them)."""
+    signature = [_signature(t) for t in textures]
+    for kept, kept_signature, packed in _PACKED:
+        if len(kept) == len(signature) and kept_signature == signature:
+            return packed
+    packed = _pack(textures)
+    _PACKED[:] = [(list(textures), signature, packed)] + _PACKED[:3]
+    return packed
+
+
+def _pack(textures) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     blocks, offsets, heights, widths, present, at = [], [], [], [], [], 0
     for texture in textures:
         if texture is None:
