@@ -41,6 +41,9 @@ class RelitResidual:
     lights: object
 
 
+_SURFACE = ("positions", "normals", "uvs", "faces", "face_material", "textures", "diffuse")  # `MeshRenderer.surface` reads
+
+
 def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch:
     """`mesh` with the fitted ambient factors (B, 3), one per picture: B meshes with a material each
     take theirs; one mesh of M materials seen B times gets its material table repeated per picture."""
@@ -59,20 +62,30 @@ def fitted_light(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_f
     (the same numbers) and the rasterization they were fitted on (a render of the relit original from
     `cameras` can reuse it), without rendering the relit original (registration renders it itself)."""
     with torch.no_grad():
-        fragments, relit, lights, _ = _fit(mesh, image, cameras, light_from)
+        fragments, relit, lights, _, _ = _fit(mesh, image, cameras, light_from)
         return relit, lights, fragments
 
 
 def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str):
-    """The light fit of `relit_residual`: (fragments, relit mesh, lights, antialiased albedo (P, 3))."""
+    """The light fit of `relit_residual`: (fragments, relit mesh, lights, antialiased albedo (P, 3),
+    and the surface the renders look up, `MeshRenderer.surface`, which relighting does not change)."""
+    from ..render import rasterize
+
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
     unlit = replace(mesh, ambient=torch.full_like(mesh.ambient, 1.0 / K_AMBIENT))
-    flat = MeshRenderer()(unlit, cameras, lights_at(cameras.eye, 0.0), height, width)  # antialiased albedo
-    fragments = flat.fragments
+    renderer = MeshRenderer()
+    # the rasterization and surface lookups the render would make itself, kept for the relit render
+    on = cameras.to(mesh.positions.device, mesh.positions.dtype)
+    positions = mesh.positions.expand(n_images, -1, -1) if mesh.positions.shape[0] == 1 else mesh.positions
+    fragments = rasterize(on.world_to_clip(positions, width / height), mesh.faces, height, width)
+    surface = renderer.surface(unlit, on, fragments)
+    flat = renderer(unlit, cameras, lights_at(cameras.eye, 0.0), height, width, fragments=fragments,
+                    surface=surface)  # antialiased albedo
     albedo = pixels_at(flat.image, fragments)
     fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
-    _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo, fit_on)
-    return fragments, _with_ambient_per_image(mesh, ambient), lights, albedo
+    _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo, fit_on,
+                                           predict=False)
+    return fragments, _with_ambient_per_image(mesh, ambient), lights, albedo, surface
 
 
 def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all") -> RelitResidual:
@@ -85,9 +98,11 @@ def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light
 
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
     with torch.no_grad():
-        fragments, relit, lights, albedo = _fit(mesh, image, cameras, light_from)
+        fragments, relit, lights, albedo, surface = _fit(mesh, image, cameras, light_from)
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
-        relit_render = MeshRenderer()(relit, cameras, lights, height, width, fragments=fragments)
+        same = all(getattr(relit, name) is getattr(mesh, name) for name in _SURFACE)  # only the ambient refitted
+        relit_render = MeshRenderer()(relit, cameras, lights, height, width, fragments=fragments,
+                                      surface=surface if same else None)
         inside = pixels_at(relit_render.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
         keep = torch.nonzero(inside).squeeze(1)
         pick = lambda values: values.index_select(0, keep)  # noqa: E731

@@ -73,14 +73,16 @@ def _best_light(y, u, position, normal, candidates):
 
 
 def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: torch.Tensor | None = None,
-                      fit_on: torch.Tensor | None = None, directions: int = 96, max_pixels: int = 512):
+                      fit_on: torch.Tensor | None = None, directions: int = 96, max_pixels: int = 512,
+                      predict: bool = True):
     """Fit a point light to the observed colours `seen` (P, 3) at `fragments` of `batch` (a MeshBatch
     with uvs) seen from `cameras`; returns the colours our shader predicts there (P, 3), differentiable
     w.r.t. the camera through the texture lookup (the light is held fixed), and the fit itself
     (ambient factors (B, 3), PointLights). `albedo` (P, 3) replaces the texture looked up at the pixel
     centres (e.g. an antialiased unlit render, to match an antialiased picture); `fit_on` (P,) bool
     limits the fit to some pixels (the prediction covers all); `directions` and `max_pixels` are
-    `fit_point_light`'s (a coarser, cheaper fit where only a ranking needs it)."""
+    `fit_point_light`'s (a coarser, cheaper fit where only a ranking needs it); `predict` False skips
+    the prediction (None in its place) where only the fit is wanted."""
     from .shader import PhongShader
     from .unrender import surface_attributes, surface_points
 
@@ -92,6 +94,8 @@ def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: tor
     used = slice(None) if fit_on is None else fit_on
     ambient, lights = fit_point_light(seen[used], albedo[used], position[used], normal[used], fragments.batch[used],
                                       n_images, directions, max_pixels)
+    if not predict:
+        return None, ambient, lights
     pick = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
     eye = cameras.eye.to(position).detach()
     predicted = PhongShader()(position, normal, albedo, pick(eye), pick(lights.position), pick(lights.intensity),

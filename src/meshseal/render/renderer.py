@@ -112,16 +112,19 @@ class MeshRenderer:
     sigma: float = 0.5
 
     def __call__(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, height: int, width: int,
-                 background=(0.0, 0.0, 0.0), fragments: Fragments | None = None) -> RenderOutput:
+                 background=(0.0, 0.0, 0.0), fragments: Fragments | None = None,
+                 surface: tuple | None = None) -> RenderOutput:
         """Render B images; `background` is one RGB colour (3,) or one per image (B, 3). `fragments`: a
-        rasterization of the same positions and cameras to reuse (re-shading a view skips rasterizing)."""
+        rasterization of the same positions and cameras to reuse (re-shading a view skips rasterizing);
+        `surface`: `surface` of the same mesh's geometry, textures and materials at those fragments
+        (re-lighting it skips the lookups)."""
         n_batch = len(cameras)
         dtype, device = batch.positions.dtype, batch.positions.device
         cameras, lights = cameras.to(device, dtype), lights.to(device, dtype)
         positions = batch.positions.expand(n_batch, -1, -1) if batch.positions.shape[0] == 1 else batch.positions
         if fragments is None:
             fragments = rasterize(cameras.world_to_clip(positions, width / height), batch.faces, height, width)
-        lit = self.shade(batch, cameras, lights, fragments)
+        lit = self.shade(batch, cameras, lights, fragments, surface)
         background = torch.as_tensor(background, dtype=dtype, device=device).reshape(-1, 3).expand(n_batch, 3)
         color = scatter_to_image(lit, fragments, 0.0)
         alpha = (fragments.pix_to_face >= 0).to(dtype)
@@ -137,8 +140,23 @@ class MeshRenderer:
         image, coverage = splat(color, alpha, splat_xy, background, self.sigma)
         return RenderOutput(torch.cat([image, coverage.unsqueeze(-1)], dim=-1), fragments)
 
-    def shade(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, fragments: Fragments) -> torch.Tensor:
-        """The lit colour (P, 3) in [0, 1] of each fragment (before any blending)."""
+    def shade(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, fragments: Fragments,
+              surface: tuple | None = None) -> torch.Tensor:
+        """The lit colour (P, 3) in [0, 1] of each fragment (before any blending); `surface`: `surface`
+        of the same at these fragments, already looked up."""
+        world, normal, albedo, material = surface if surface is not None else self.surface(batch, cameras, fragments)
+        # index_select: on the CPU far cheaper than advanced indexing for these lookups.
+        by_material = lambda table: table.index_select(0, material)  # noqa: E731
+        by_image = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
+        lit = self.shader(world, normal, albedo, by_image(cameras.eye), by_image(lights.position),
+                          by_image(lights.intensity), by_material(batch.ambient), by_material(batch.specular),
+                          by_material(batch.shininess))
+        return lit.clamp(0.0, 1.0)
+
+    def surface(self, batch: MeshBatch, cameras: Cameras, fragments: Fragments) -> tuple:
+        """What shading looks up at each fragment before any light: world position (P, 3), normal
+        (P, 3), albedo times the diffuse colour (P, 3) and material (P,). It does not depend on the
+        lights or the ambient colours: renders of one mesh under other lights can share it."""
         # One gather for every attribute: world position, normal and uv.
         n_batch = len(cameras)
         expand = lambda table: table.expand(n_batch, -1, -1) if table.shape[0] == 1 else table  # noqa: E731
@@ -151,14 +169,7 @@ class MeshRenderer:
             albedo = world.new_ones(world.shape[0], 3)
         else:
             albedo = sample_textures(batch.textures, interpolated[:, 6:8], material)
-        # index_select: on the CPU far cheaper than advanced indexing for these lookups.
-        by_material = lambda table: table.index_select(0, material)  # noqa: E731
-        by_image = lambda table: table.index_select(0, fragments.batch)  # noqa: E731
-        albedo = albedo * by_material(batch.diffuse)
-        lit = self.shader(world, normal, albedo, by_image(cameras.eye), by_image(lights.position),
-                          by_image(lights.intensity), by_material(batch.ambient), by_material(batch.specular),
-                          by_material(batch.shininess))
-        return lit.clamp(0.0, 1.0)
+        return world, normal, albedo * batch.diffuse.index_select(0, material), material
 
     def render(self, mesh: Mesh, cameras: Cameras, lights: PointLights, width: int, height: int,
                background=(0.0, 0.0, 0.0)) -> torch.Tensor:

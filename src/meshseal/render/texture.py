@@ -34,6 +34,8 @@ def sample_textures(textures, uv: torch.Tensor, texture_index: torch.Tensor) -> 
         return out
     if torch.is_tensor(textures):
         return _sample_stack(textures, uv, texture_index).to(out.dtype)
+    if len(textures) == 1 and textures[0] is not None and bool((texture_index == 0).all()):
+        return sample_texture(textures[0], uv).to(out.dtype).contiguous()  # what the loop gives, in its layout
     for index in torch.unique(texture_index).tolist():
         texture = textures[index]
         if texture is None:
