@@ -185,8 +185,10 @@ def take_off_linear_light(residual: torch.Tensor, expected: torch.Tensor, pixel:
     added = linear_light_direction(expected)
     unit = F.normalize(added, dim=1, eps=1e-6)
     across = torch.cross(F.normalize(expected, dim=1, eps=1e-6), unit, dim=1)
-    along_added = local_mean((residual * unit).sum(1) ** 2, pixel, shape, LINEAR_LIGHT_SIGMA)
-    along_across = local_mean((residual * across).sum(1) ** 2, pixel, shape, LINEAR_LIGHT_SIGMA)
+    # both variances in one masked blur (each plane blurred as on its own)
+    both = local_mean(torch.stack([(residual * unit).sum(1) ** 2, (residual * across).sum(1) ** 2], 1), pixel,
+                      shape, LINEAR_LIGHT_SIGMA)
+    along_added, along_across = both[:, 0].contiguous(), both[:, 1].contiguous()
     weight = (1.0 - LINEAR_LIGHT_RATIO * along_across / along_added.clamp_min(1e-12)).clamp(0.0, 1.0)
     weight = weight * ((added * added).sum(1) / LINEAR_LIGHT_DISTINCT ** 2).clamp(max=1.0)
     residual = residual - weight[:, None] * (residual * unit).sum(1, keepdim=True) * unit
