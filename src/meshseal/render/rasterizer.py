@@ -19,6 +19,7 @@ import torch
 
 SPAN_REACH = 1e6  # px: screen coordinates under this solve a row's span to well under a pixel
 SPAN_SLOPE = 1e-3  # an edge whose function changes less than this a pixel along a row bounds no span
+SPAN_WIDEST = 4  # boxes fewer columns wide than this are scanned whole: solving costs more than it skips
 
 
 @numba.njit(cache=True)
@@ -53,8 +54,9 @@ def _zbuffer_one(xy, z, w, faces, near, face_out, depth, top, left, height, widt
         inv_area = 1.0 / area
         # Each row's columns are those of the box within a pixel of the triangle's edges (solved for
         # along the row): the exact test below decides them all, as over the whole box, and the box's
-        # other pixels would fail it. Far off screen (or not finite) the box is scanned whole.
-        spans = max(abs(x0), abs(x1), abs(x2), abs(y0), abs(y1), abs(y2)) < SPAN_REACH
+        # other pixels would fail it. Narrow, far off screen (or not finite): the box is scanned whole.
+        spans = (col_hi - col_lo >= SPAN_WIDEST
+                 and max(abs(x0), abs(x1), abs(x2), abs(y0), abs(y1), abs(y2)) < SPAN_REACH)
         sign = 1.0 if area > 0.0 else -1.0
         for row in range(row_lo, row_hi + 1):
             py = row + 0.5
