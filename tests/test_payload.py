@@ -47,6 +47,9 @@ def test_code_is_pinned():
                                                       "+ x + 1")
     assert str(payload._code(32).generator_poly) == "x^15 + x^11 + x^10 + x^9 + x^8 + x^7 + x^5 + x^3 + x^2 + x + 1"
     assert (payload._code(64).t, payload._code(32).t) == (5, 3)
+    for n_bits, schema in payload.SCHEMAS.items():  # the copies that spare a codeword the galois import
+        assert payload.GENERATORS[n_bits] == int(payload._code(n_bits).generator_poly)
+        assert (schema.d - 1) // 2 == payload._code(n_bits).t
     bits = "".join(str(int(b)) for b in encode("hi!", key="pinned"))
     assert bits == GOLDEN_BITS
     assert key_seed("pinned") == GOLDEN_SEED
@@ -368,3 +371,18 @@ def test_a_codeword_is_recognised_as_the_bch_decoder_would_and_others_go_to_it()
             assert (got is None) == (expected is None) and (got is None or np.array_equal(got, expected)), (n_bits, flips)
             if len(flips) == 0:
                 assert np.array_equal(got, word)
+
+
+def test_the_codeword_test_is_the_parity_check_matrix_s():
+    """`_is_codeword` (g(x) divides the word) says what galois' parity-check matrix says: no syndrome."""
+    from meshseal.payload import SCHEMAS, _code, _is_codeword
+
+    rng = np.random.default_rng(1)
+    for n_bits in SCHEMAS:
+        code = _code(n_bits)
+        check = np.asarray(code.H, dtype=np.int64)
+        words = [np.asarray(code.encode(rng.integers(0, 2, code.k).astype(np.uint8)), dtype=np.uint8) for _ in range(50)]
+        words += [word ^ (rng.random(code.n) < 0.05).astype(np.uint8) for word in words]
+        words += [rng.integers(0, 2, code.n).astype(np.uint8) for _ in range(50)]
+        for word in words:
+            assert _is_codeword(word) == (not (check @ word.astype(np.int64) % 2).any())

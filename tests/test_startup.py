@@ -73,3 +73,26 @@ def test_lazy_names_stay_the_functions_after_their_submodule_is_imported():
 
     assert callable(load_mesh) and isinstance(Watermarker, type) and isinstance(MeshRenderer, type)
     assert callable(make_renderer)
+
+
+READ_PATH = """
+import json, sys
+import meshseal.api, meshseal.methods.charts
+from meshseal import payload
+soft = [2.0 * bit - 1.0 for bit in %r]  # encode's bits, made outside: encoding uses galois
+print(json.dumps({"message": payload.decode(soft, key="k").message,
+                  "loaded": [m for m in %r if m in sys.modules]}))
+"""
+
+
+def test_reading_a_clean_codeword_does_not_import_what_detect_does_not_use():
+    """The reading path (the API, the charts module, decoding a word that is already a codeword) leaves
+    galois, matplotlib and scipy.ndimage unimported: each would add its import to every `meshseal detect`."""
+    from meshseal.payload import encode
+
+    bits = encode("ab42", key="k").tolist()
+    out = subprocess.run([sys.executable, "-c", READ_PATH % (bits, ("galois", "matplotlib", "scipy.ndimage"))],
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result == {"message": "ab42", "loaded": []}

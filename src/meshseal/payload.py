@@ -212,25 +212,34 @@ def _as_soft(soft) -> np.ndarray:
     return values
 
 
-@lru_cache(maxsize=None)
-def _parity_check(n_bits: int) -> np.ndarray:
-    """The BCH code's parity-check matrix (n - k, n) as integers: a word is a codeword where it has no
-    syndrome (most pictures with a mark read one; galois' decoder takes milliseconds to say so)."""
-    return np.asarray(_code(n_bits).H, dtype=np.int64)
+# Each schema's BCH generator polynomial g(x) (bit i: the coefficient of x^i) and its correctable errors
+# t = (d - 1) // 2: galois' `_code(n).generator_poly` and `.t` (tests/test_payload.py checks them), kept
+# here so that a word that is already a codeword is recognised without importing galois.
+GENERATORS = {64: 0x86E8113, 32: 0x8FAF}
+
+
+def _is_codeword(word: np.ndarray) -> bool:
+    """Whether BCH bits `word` (n,), highest degree first as galois orders them, are a codeword:
+    g(x) divides the word's polynomial (no syndrome; most pictures with a mark read one, and galois'
+    decoder takes milliseconds to say so)."""
+    generator = GENERATORS[len(word) + 1]
+    remainder, degree = int("".join("1" if bit else "0" for bit in word), 2), generator.bit_length() - 1
+    while remainder.bit_length() > degree:
+        remainder ^= generator << (remainder.bit_length() - 1 - degree)
+    return remainder == 0
 
 
 def _bch_decode(word: np.ndarray) -> np.ndarray | None:
     """The extended-code codeword (N,) nearest to hard bits `word` (N,), or None. A word is accepted
     when the BCH errors plus a mismatched overall parity bit are at most t, so the extended code's
     t + 1 errors are always detected rather than miscorrected."""
-    code = _code(len(word))
-    if not (_parity_check(len(word)) @ word[:-1].astype(np.int64) % 2).any():
+    if _is_codeword(word[:-1]):
         decoded, n_errors = word[:-1].astype(np.uint8), 0  # a codeword already: the decoder's own answer, at no cost
     else:
-        decoded, n_errors = code.decode(word[:-1], output="codeword", errors=True)
+        decoded, n_errors = _code(len(word)).decode(word[:-1], output="codeword", errors=True)
         decoded = np.asarray(decoded, dtype=np.uint8)
     parity = np.uint8(decoded.sum() % 2)
-    if n_errors < 0 or n_errors + (parity != word[-1]) > code.t:
+    if n_errors < 0 or n_errors + (parity != word[-1]) > (_schema(len(word)).d - 1) // 2:
         return None
     return np.append(decoded, parity)
 

@@ -19,7 +19,6 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from scipy import ndimage
 
 from ..mesh.core import Mesh
 
@@ -143,6 +142,8 @@ def _chart_material(mesh: Mesh, material: int, parts: list) -> tuple | None:
         entry[1].append((used[torch.from_numpy(sources)] - start, torch.from_numpy(indices)))
         entry[2].append(new_uvs)
     if owned.any():  # the gutters between blocks take the nearest block's colour
+        from scipy import ndimage  # only a mesh with palette faces gets here: not on every reading's import path
+
         _, (nearest_rows, nearest_cols) = ndimage.distance_transform_edt(~owned, return_indices=True)
         paint = paint[nearest_rows, nearest_cols]
     image[height + 1: height + 1 + atlas_height, :atlas_width] = torch.from_numpy(paint)
