@@ -120,7 +120,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=None)
     parser.add_argument("--meshes", type=int, default=40)
-    parser.add_argument("--models", nargs="+", default=["default", "robust"])
+    parser.add_argument("--models", nargs="+", default=["default", "chroma", "robust"])
     args = parser.parse_args()
     assets = [("fixture", meshseal.load_mesh(FIXTURES / name)) for name in FIXTURE_FILES]
     if args.data is not None:

@@ -40,13 +40,14 @@ from engines import BACKGROUND, item_mesh, png_without_metadata  # noqa: E402  (
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
     parser.add_argument("--engines", nargs="+", default=["ours", "eevee", "workbench", "cycles"])
     parser.add_argument("--meshes", type=int, default=None, help="at most this many palette meshes")
     parser.add_argument("--without-charts", action="store_true", help="palette faces left as they are (before charts)")
     args = parser.parse_args()
     if args.without_charts:
         charts.CHART_ABOVE = math.inf
-    wm = meshseal.load()
+    wm = meshseal.load(args.model)
     dataset = MeshDataset(args.data, "test")
     renderers = {engine: make_renderer(engine) for engine in args.engines}
     canonical = lambda mesh: normalize(to_z_up(replace(mesh, source=None)))  # noqa: E731

@@ -71,13 +71,14 @@ def aimed_off(cameras, generator: torch.Generator):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
     parser.add_argument("--meshes", type=int, default=20)
     parser.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--split", default="test", choices=("train", "test"), help="the meshes' split (default test)")
     parser.add_argument("--jsonl", type=Path, default=None, help="one JSON line per picture")
     args = parser.parse_args()
-    wm = meshseal.load()
+    wm = meshseal.load(args.model)
     model = wm.model
     dataset = MeshDataset(args.data, args.split)
     textures = sorted((args.data / "textures").glob("*.png"))

@@ -40,8 +40,9 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fixtures", nargs="+", default=["bunny", "teapot", "crate"])
+    parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
     args = parser.parse_args()
-    wm = meshseal.load()
+    wm = meshseal.load(args.model)
     key_seed = payload.key_seed(None)
     expected = payload.encode("ab42", None, wm.n_bits)
     print("| strength | texture PSNR, shown texels | texture PSNR | object PSNR | object FLIP | " + " | ".join(

@@ -52,3 +52,23 @@ def test_names_parse_and_unknown_ones_are_refused():
         attacks.parse("jpeg90,bogus")
     with pytest.raises(ValueError):
         attacks.parse(" , ")
+
+
+def test_pictures_are_sorted_into_the_kinds_the_report_splits_out():
+    """`picture_kinds`: a texture on its fine / coarse grid is magnified / minified, an object mostly at
+    white clips, one under SMALL_OBJECT pixels is small, and a picture of none of these is plain."""
+    import torch
+
+    from meshseal.evaluation.evaluate import SMALL_OBJECT, picture_kinds
+    from meshseal.models.spread import SpreadSpectrumEncoder
+
+    encoder = SpreadSpectrumEncoder(64, chips=128, coarse_chips=64, fine_chips=512)
+    pictures = torch.full((3, 3, 64, 64), 0.4)
+    pictures[1, :, :40] = 1.0  # most of the object at white
+    masks = torch.zeros(3, 64, 64, dtype=torch.bool)
+    masks[:2] = True
+    masks[2, :10, :10] = True  # 100 pixels
+    assert SMALL_OBJECT > 100 and 64 * 64 >= SMALL_OBJECT
+    assert picture_kinds(encoder, 128, pictures, masks) == [["plain"], ["clipped"], ["small"]]
+    assert picture_kinds(encoder, 512, pictures, masks)[0] == ["magnified"]
+    assert picture_kinds(encoder, 64, pictures, masks)[1] == ["minified", "clipped"]

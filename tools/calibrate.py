@@ -246,9 +246,10 @@ def main() -> None:
     parser.add_argument("--null-size", type=int, default=128, help="clean pictures' size (default 128)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--model", default="default", help="shipped model name or .safetensors path")
     args = parser.parse_args()
     started = time.perf_counter()
-    wm = meshseal.load(device=args.device)
+    wm = meshseal.load(args.model, device=args.device)
     dataset = MeshDataset(args.data, "test")
     if args.meshes is not None:
         dataset.rows = dataset.rows[:args.meshes]

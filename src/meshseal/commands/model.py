@@ -488,11 +488,26 @@ def run_eval(args) -> int:
         print(json.dumps(metrics))
     else:
         table = metrics.pop("attacks", None)
+        kinds = metrics.pop("by_kind", None)
         for key, value in metrics.items():
             print(f"{key}: {value:.4f}" if isinstance(value, float) else f"{key}: {value}")
         if table:
             print(attack_table(table))
+        if kinds:
+            print(kind_table(kinds, list(table or [])))
     return 0
+
+
+def kind_table(kinds: dict, attacks: list[str]) -> str:
+    """`evaluate_registered`'s detection rates by kind of picture (`evaluation.evaluate.picture_kinds`):
+    one row a kind, the pictures as read, then after each attack."""
+    figure = lambda value: "-" if value is None else f"{value:.2f}"  # noqa: E731
+    lines = ["| kind | pictures | object FLIP | detected | " + " | ".join(attacks) + (" |" if attacks else ""),
+             "|---|---|---|---|" + "---|" * len(attacks)]
+    lines += [f"| {kind} | {row['pictures']} | {row['flip_object']:.4f} | {figure(row['detected'])} | "
+              + " | ".join(figure(row.get(name)) for name in attacks) + (" |" if attacks else "")
+              for kind, row in kinds.items()]
+    return "\n".join(lines)
 
 
 def attack_table(table: dict) -> str:

@@ -31,6 +31,33 @@ from .metrics import (
 
 
 
+# Kinds of picture the by-kind report splits out (`picture_kinds`), so that no class of failures hides in
+# a mean: an object this small (pixels), highlights that clip (this share of the object's pixels at 255).
+SMALL_OBJECT = 1500
+CLIPPED = 0.2
+KIND_ORDER = ("plain", "magnified", "minified", "clipped", "small")
+
+
+def picture_kinds(encoder, grid: int | None, pictures: torch.Tensor, masks: torch.Tensor) -> list[list[str]]:
+    """The kinds each of a mesh's pictures (V, 3, H, W in [0, 1], object masks (V, H, W)) belongs to:
+    `magnified` / `minified` texture (a spread mark (`encoder`) laid on its fine / coarse `grid`
+    because its cells would be over `fine_above` / under `coarse_below` pixels in a standard view),
+    `clipped` (at least CLIPPED of the object's pixels at white in some channel), `small` (fewer than
+    SMALL_OBJECT object pixels); the others are `plain`. A picture can be of several kinds."""
+    scale = None
+    if grid is not None and grid != encoder.chips:
+        scale = "magnified" if grid == encoder.fine_chips else "minified" if grid == encoder.coarse_chips else None
+    kinds = []
+    for picture, mask in zip(pictures, masks):
+        pixels = int(mask.sum())
+        white = (picture.amax(0) >= 254.5 / 255)[mask]
+        named = [name for name, hit in ((scale, scale is not None),
+                                        ("clipped", pixels > 0 and float(white.float().mean()) >= CLIPPED),
+                                        ("small", pixels < SMALL_OBJECT)) if hit]
+        kinds.append(named or ["plain"])
+    return kinds
+
+
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
                         size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
                         max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None) -> dict:
@@ -110,6 +137,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             seen = visibility(clean.image, pictures, clean.rgba[..., 3] > 0.5)
             texture_psnr = float(shown_texture_psnr(texture_marked, texture, used)[0])
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
+            kinds = picture_kinds(model.texture_encoder, grid if calibrated else None, pictures,
+                                  clean.rgba[..., 3] > 0.5) if calibrated else [["plain"]] * views
         readings = []
         for view in range(views):
             picture = pictures[view].permute(1, 2, 0).cpu().numpy()
@@ -135,7 +164,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "exact": found is not None and found.message == identity,
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
-            rows.append(row | {"palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
+            rows.append(row | {"kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
                                "strength": strength})
             for number, name in enumerate(attacked):
@@ -149,7 +178,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     got = _read_or_none(watermarker, hit, original, camera=cameras[[view]])
                 decision = None if got is None else watermarker.decide([got])
                 attacked[name].append({
-                    "bit_acc": 0.5 if decision is None else agree(decision),
+                    "kinds": kinds[view], "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
                     "exact": coded and decision is not None and decision.message == identity,
                     "seconds": time.perf_counter() - started})
@@ -191,6 +220,17 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                       "flip_object": mean("flip_object", part) if part else None}
                                for name, part in (("uv_mapped", [r for r in rows if not r["palette"]]),
                                                   ("palette", [r for r in rows if r["palette"]]))}
+    if coded:  # by kind of picture (`picture_kinds`): detected as read, and after each attack
+        names = sorted({kind for r in rows for kind in r["kinds"]}, key=KIND_ORDER.index)
+        result["by_kind"] = {}
+        for kind in names:
+            part = [r for r in rows if kind in r["kinds"]]
+            entry = {"pictures": len(part), "detected": mean("detected", part),
+                     "detected_known_camera": mean("detected_known", part), "flip_object": mean("flip_object", part)}
+            for name, table in attacked.items():
+                hit = [r for r in table if kind in r["kinds"]]
+                entry[name] = mean("detected", hit) if hit else None
+            result["by_kind"][kind] = entry
     if attacked:
         result["attacks"] = {name: {"pictures": len(part), "detected": mean("detected", part) if coded else None,
                                     "exact": mean("exact", part) if coded else None, "bit_acc": mean("bit_acc", part),
@@ -199,7 +239,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
             "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
-            "strength_lowered",
+            "strength_lowered", "by_kind",
             "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
     return result
 
