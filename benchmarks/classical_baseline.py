@@ -298,8 +298,8 @@ def main() -> None:
             for part in by_model.values():
                 ours = float(np.mean([r["attacks"][attack][0] for r in part]))
                 base = float(np.mean([r["attacks"][attack][1] for r in part]))
-                ratio = (ours - 0.5) / (base - 0.5) if base > 0.5 else math.inf
-                cells.append(f"{ours:.3f} / {base:.3f} / {ratio:.1f}x")
+                ratio = (ours - 0.5) / (base - 0.5) if base > 0.5 else None  # no gain of the baseline's to compare
+                cells.append(f"{ours:.3f} / {base:.3f} / " + ("-" if ratio is None else f"{ratio:.1f}x"))
             print(f"| {attack} | " + " | ".join(cells) + " |")
     print(f"\n{time.perf_counter() - start:.1f} s; load average at end: {os.getloadavg()}")
     print(f"ours_bit_acc={mean['ours']:.4f} baseline_bit_acc={mean['baseline']:.4f} "
