@@ -51,8 +51,8 @@ def main() -> None:
     parser.add_argument("--above", type=float, default=None, help="read the meshes with cells over this many pixels instead")
     parser.add_argument("--chips", type=int, nargs="+", default=[128, 64, 32])
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--model", default="chroma", help="shipped model whose reading settings are used (the grids "
-                        "are drawn blue-yellow, as `chroma` marks; the grid choice is measured with it)")
+    parser.add_argument("--model", default="chroma", help="shipped model whose mark colour and reading settings the "
+                        "grids use (the grid choice was measured with `chroma`)")
     args = parser.parse_args()
     wm = meshseal.load(args.model)
     shipped = wm.model.texture_encoder
@@ -72,7 +72,7 @@ def main() -> None:
     print("| cells | meshes | object PSNR | object FLIP | bits, true camera | bits, registered | registration < 0.5 px | detected (FPR 1e-6) |")
     print("|---|---|---|---|---|---|---|---|")
     for chips in args.chips:
-        wm.model.texture_encoder = SpreadSpectrumEncoder(shipped.n_bits, chips, "blue-yellow" if args.model == "chroma" else "grey", shipped.texture_psnr,
+        wm.model.texture_encoder = SpreadSpectrumEncoder(shipped.n_bits, chips, wm.model.config.mark_colour, shipped.texture_psnr,
                                                          shipped.window, shipped.floor, shipped.seed)
         rows = []
         for index in small:

@@ -502,11 +502,10 @@ def kind_table(kinds: dict, attacks: list[str]) -> str:
     """`evaluate_registered`'s detection rates by kind of picture (`evaluation.evaluate.picture_kinds`):
     one row a kind, the pictures as read, then after each attack."""
     figure = lambda value: "-" if value is None else f"{value:.2f}"  # noqa: E731
-    lines = ["| kind | pictures | object FLIP | detected | " + " | ".join(attacks) + (" |" if attacks else ""),
-             "|---|---|---|---|" + "---|" * len(attacks)]
-    lines += [f"| {kind} | {row['pictures']} | {row['flip_object']:.4f} | {figure(row['detected'])} | "
-              + " | ".join(figure(row.get(name)) for name in attacks) + (" |" if attacks else "")
-              for kind, row in kinds.items()]
+    row_of = lambda cells: "| " + " | ".join(cells) + " |"  # noqa: E731
+    lines = [row_of(["kind", "pictures", "object FLIP", "detected", *attacks]), row_of(["---"] * (4 + len(attacks)))]
+    lines += [row_of([kind, str(row["pictures"]), f"{row['flip_object']:.4f}", figure(row["detected"]),
+                      *(figure(row.get(name)) for name in attacks)]) for kind, row in kinds.items()]
     return "\n".join(lines)
 
 

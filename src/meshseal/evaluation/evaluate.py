@@ -134,11 +134,11 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                 cameras, lights, size, size, background).image.clamp(0, 1)
             original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
             clean = renderer(original, cameras, lights, size, size, background)  # what the mark changed, as seen
-            seen = visibility(clean.image, pictures, clean.rgba[..., 3] > 0.5)
+            shown = clean.rgba[..., 3] > 0.5  # the object's pixels
+            seen = visibility(clean.image, pictures, shown)
             texture_psnr = float(shown_texture_psnr(texture_marked, texture, used)[0])
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
-            kinds = picture_kinds(model.texture_encoder, grid if calibrated else None, pictures,
-                                  clean.rgba[..., 3] > 0.5) if calibrated else [["plain"]] * views
+            kinds = picture_kinds(model.texture_encoder, grid, pictures, shown) if calibrated else [["plain"]] * views
         readings = []
         for view in range(views):
             picture = pictures[view].permute(1, 2, 0).cpu().numpy()
