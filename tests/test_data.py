@@ -54,16 +54,17 @@ def _make_source(root: Path) -> Path:
     return src
 
 
-def _build(src: Path, out: Path, seed: int = 0, **kwargs):
+def _build(src: Path, out: Path, seed: int = 0, workers: int = 0, **kwargs):
+    """A build in this process (workers=0), or in spawned workers as the command line builds."""
     return build(out, sources=[], texture_sources=[], from_folder=src, textures_dir=FIXTURES / "textures",
-                 seed=seed, n_faces=FACES, texture_size=TEX, workers=1, license_="CC0-1.0", **kwargs)
+                 seed=seed, n_faces=FACES, texture_size=TEX, workers=workers, license_="CC0-1.0", **kwargs)
 
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
     src = _make_source(root)
-    report = _build(src, root / "out")
+    report = _build(src, root / "out", workers=1)  # the process pool's path; the other builds run in-process
     return src, root / "out", report
 
 
@@ -272,7 +273,7 @@ def test_sweethome3d_source_from_fake_package(tmp_path, monkeypatch):
     assert len(textures) >= 2
     monkeypatch.undo()
     report = build(tmp_path / "out", sources=["sweethome3d"], texture_sources=["sweethome3d"], cache=cache,
-                   n_faces=FACES, texture_size=TEX, workers=1, pool_size=10)
+                   n_faces=FACES, texture_size=TEX, workers=0, pool_size=10)
     assert report["n_built"] == 2 and report["n_textures"] >= 2
     rows = [json.loads(line) for line in (tmp_path / "out" / "manifest.jsonl").read_text().splitlines()]
     assert {r["texture_kind"] for r in rows} == {"own"}

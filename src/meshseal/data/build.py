@@ -24,7 +24,7 @@ import time
 import zipfile
 import zlib
 from collections import Counter, defaultdict
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import asdict
 from pathlib import Path
 
@@ -42,6 +42,35 @@ from .process import ProcessOptions, process_mesh, resize
 _SPAWN = multiprocessing.get_context("spawn")
 # One thread a worker, set before it imports torch or numba (meshseal.threads): the pool has a worker per core.
 _ONE_THREAD = {"initializer": configure_threads, "initargs": (None, True)}
+
+
+class _InProcess:
+    """The part of an executor `build` uses, run in this process (`workers=0`): no start-up of a
+    worker (a spawned worker imports torch again), tracebacks where they happen; a crash ends the build."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def submit(self, fn, *args) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args))
+        except Exception as error:  # what a worker's future would carry
+            future.set_exception(error)
+        return future
+
+    def map(self, fn, *iterables, chunksize: int = 1):
+        return map(fn, *iterables)
+
+
+def _executor(workers: int):
+    """`workers` spawned one-thread processes, or this process for 0."""
+    if int(workers) <= 0:
+        return _InProcess()
+    return ProcessPoolExecutor(max_workers=int(workers), mp_context=_SPAWN, **_ONE_THREAD)
 
 FORMAT_VERSION = 1
 CC0 = {"CC0-1.0", "CC0", "public-domain"}
@@ -294,7 +323,7 @@ def build_pool(out: Path, candidates: list[S.TextureCandidate], size: int, pool_
     rows: list[dict] = []
     start = 0
     progress = _progress(min(pool_size, len(ordered)), "texture pool")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=_SPAWN, **_ONE_THREAD) as executor:
+    with _executor(workers) as executor:
         while len(rows) < pool_size and start < len(ordered):
             chunk = ordered[start:start + max(32, int((pool_size - len(rows)) * 1.3))]
             start += len(chunk)
@@ -391,7 +420,7 @@ def build(out, *, sources=S.DEFAULT_SOURCES, texture_sources=S.DEFAULT_TEXTURE_S
     new_failures: dict[str, str] = {}
     if todo:
         progress = _progress(len(todo), "meshes")
-        with ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=_SPAWN, **_ONE_THREAD) as executor, \
+        with _executor(workers) as executor, \
                 open(failed_file, "a") as failed_log:
             futures = [executor.submit(mesh_worker, a.to_dict(), options, str(out), pool_paths, seed) for a in todo]
             for future in as_completed(futures):

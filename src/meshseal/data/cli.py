@@ -74,7 +74,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--test-fraction", type=float, default=0.15)
     b.add_argument("--p-noise", type=float, default=0.5,
                    help="meshes without a texture: probability of noise (else a real image)")
-    b.add_argument("--workers", type=int, default=2)
+    b.add_argument("--workers", type=int, default=2, help="worker processes (0: build in this process)")
     b.add_argument("--max-per-source", type=int, default=None, help="at most this many meshes per source")
     b.add_argument("--limit", type=int, default=None, help="at most this many meshes (quick trials)")
     b.add_argument("--retry-failed", action="store_true", help="retry assets that failed in an earlier run")
