@@ -141,6 +141,28 @@ def test_registration_of_an_object_the_frame_cuts_off():
     assert pose_error(mesh, cut, found.camera, 160, 160) < 1.0
 
 
+def test_registration_finds_another_lens(monkeypatch):
+    """A picture through a longer lens than registration assumes (40 degrees, the camera moved back
+    to keep the framing), as a crop of a picture or another renderer's camera makes: the texture
+    stage's zoom finds the field of view and the pose within a fifth of a pixel; without it (a rigid
+    move alone) the pose is half a pixel or more off."""
+    import math
+
+    from meshseal.reading import registration as registration
+
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    scale = np.tan(np.radians(30.0)) / np.tan(np.radians(20.0))
+    lens = replace(camera, fov_y=40.0, eye=camera.at + (camera.eye - camera.at) * scale)
+    out = MeshRenderer()(mesh, lens, lights, 192, 192, (0.5, 0.5, 0.5))
+    picture, mask = out.image[0], out.rgba[0, ..., 3] > 0.5
+    found = register(mesh, picture, mask, torch.tensor([0.5, 0.5, 0.5]))
+    assert abs(found.camera.fov_y - 40.0) < 3.0, found.camera.fov_y
+    assert pose_error(mesh, lens, found.camera, 192, 192) < 0.2
+    monkeypatch.setattr(registration, "ZOOM_TRY", math.inf)
+    rigid = register(mesh, picture, mask, torch.tensor([0.5, 0.5, 0.5]))
+    assert rigid.camera.fov_y == 60.0 and pose_error(mesh, lens, rigid.camera, 192, 192) > 0.5
+
+
 def test_registration_tries_more_views_where_the_texture_disagrees(monkeypatch):
     """Where the view refined first is wrong (here forced: the first pass keeps only the candidate
     facing most away from the true camera), the texture explains the picture poorly and registration

@@ -5,8 +5,9 @@ picture is cropped to the object's square box (as `framing` does); candidate vie
 mesh are rendered, framed the same way and scored by silhouette overlap and by how well the picture's
 colours fit the mesh's texture under the best-fitting simple lighting; the best few are refined on their
 silhouettes, the one whose texture fits best is refined again, and the camera of the whole picture is
-finished on the texture; where the texture then still fits poorly, more candidate views, nearer each
-other, get the same treatment. Every refinement is Gauss-Newton on a rigid move whose Jacobian is an
+finished on the texture (its field of view too, where the assumed one leaves the texture fitting
+poorly: a crop, another lens); where the texture then still fits poorly, more candidate views, nearer
+each other, get the same treatment. Every refinement is Gauss-Newton on a rigid move whose Jacobian is an
 image gradient times the move's analytic screen flow (Lucas-Kanade style: one render per iteration, no
 backward pass).
 """
@@ -58,6 +59,12 @@ SCORE_LIGHT_PIXELS = 256  # ... and at most about this many pixels a view (the t
 RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
 RETRY_KEEP = 12
 RETRY_ANGLE = 12.0  # ... at least this many degrees from each other and from the views refined first
+TEXTURE_DAMPING = 1e-3  # the texture stage's Levenberg-Marquardt damping, times the normal matrix's mean diagonal ...
+ZOOM_DAMPING = 1e-6  # ... and with the zoom, whose valley along the view axis that damping would hold back
+ZOOM_TRY = 0.03  # the texture stage tries the zoom where the texture misfit (sigma 1) is still this or more (a registered pose of the assumed lens fits under it) ...
+ZOOM_GAIN = 0.9  # ... and the texture stage keeps the zoomed camera only if its texture misfit is under this share of the other's
+ZOOM_ROUNDS = 3  # the texture stage's coarse-to-fine passes at most ...
+ZOOM_AGAIN = 0.5  # ... another one while the last changed the field of view by this many degrees or more
 SHARPEN_STEPS = (0.2, 0.025)  # pixels: `sharpen`'s first and last step
 SHARPEN_RENDERS = 150  # ... and at most this many renders
 SHARPEN_WINDOW = 256  # ... of at most this many pixels a side around the object's centre
@@ -68,8 +75,8 @@ FOV = 60.0
 
 @dataclass
 class Registration:
-    """camera: the camera of the whole picture (its field of view as assumed, principal point at the
-    centre); box: the object's square box (cx, cy, half) in the picture's pixels; iou: overlap of the
+    """camera: the camera of the whole picture (its field of view as assumed, or as the texture stage
+    refined it; principal point at the centre); box: the object's square box (cx, cy, half) in the picture's pixels; iou: overlap of the
     registered silhouette with the picture's. alternatives: the next-best distinct views (up to
     ALTERNATIVES, best first, each an `Alternative`): a near-symmetric shape's twin views fit
     silhouette and texture alike, and only the mark can tell them apart (`reading.second_look`)."""
@@ -321,6 +328,18 @@ def _moved(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
     return replace(start, eye=eye, at=eye + distance * forward, up=rotation_world[:, 1])
 
 
+def _zoomed(start: Cameras, delta: torch.Tensor, size: int) -> Cameras:
+    """`_moved` by the first six coordinates of `delta` (6 or 7,), and the focal length changed by the
+    seventh (if any), in the same units: the picture grows by that many pixels at `size / 2` from its centre.
+    A crop of a picture, or a picture made with another lens, has another field of view than the one
+    registration assumes; the rigid move alone can match its size but not its perspective."""
+    if len(delta) == 6:
+        return _moved(start, delta, size)
+    focal_scale = 1.0 + 2.0 * float(delta[6]) / size
+    fov = math.degrees(2 * math.atan(math.tan(math.radians(start.fov_y) / 2) / max(focal_scale, 1e-3)))
+    return replace(_moved(start, delta[:6], size), fov_y=fov)
+
+
 def _screen_flow(start: Cameras, delta: torch.Tensor, points: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """How far each camera's world points (B, N, 3) move on its height x width screen per unit of each
     of `_moved`'s six coordinates, at `delta` (B, 6) (or (1, 6) for all) from `start` (B cameras):
@@ -488,7 +507,7 @@ def pose_error(mesh: MeshBatch, truth: Cameras, found: Cameras, height: int, wid
 
 def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
                       sigmas: tuple[float, ...] = TEXTURE_SIGMAS, iterations: int = 10,
-                      margin: int = 3, light_from: str = "all") -> Cameras:
+                      margin: int = 3, light_from: str = "all", zoom: bool = False) -> Cameras:
     """Sub-pixel refinement of `camera` (one camera of `picture` (1, 3, H, W), object pixels `mask`
     (1, H, W)) on the texture rather than the silhouette: Gauss-Newton on the rigid move of `_moved`
     (pixel units) minimising the squared difference between the picture and the original relit to
@@ -501,9 +520,26 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     analytic screen flow of each pose coordinate (`_flow_jacobian`, one render per iteration), not
     central differences of rendered pictures, which cost twelve renders an iteration and whose noise on
     fine texture stops refinements short of the pose (docs/reading.md, "Alternatives measured"). A
-    step that does not lower the cost is halved twice before the level stops. Works on a copy of at
-    most WORKING_SIZE pixels a side."""
+    step that does not lower the cost is halved twice before the level stops. With `zoom` the move has
+    a seventh coordinate, the focal length (`_zoomed`): a crop or another lens gives a picture another
+    field of view than the one assumed. Zoom and a move along the view axis differ only by
+    perspective, so a large change of the field of view takes more than one pass: the levels run again
+    from where the last pass ended while it changed the field of view by ZOOM_AGAIN degrees or more,
+    ZOOM_ROUNDS passes at most. Works on a copy of at most WORKING_SIZE pixels a side."""
     picture, mask = _working_size(picture, mask)
+    if not zoom:
+        return _texture_levels(mesh, camera, picture, mask, sigmas, iterations, margin, light_from, False)
+    for _ in range(ZOOM_ROUNDS):
+        start_fov = camera.fov_y
+        camera = _texture_levels(mesh, camera, picture, mask, sigmas, iterations, margin, light_from, True)
+        if abs(camera.fov_y - start_fov) < ZOOM_AGAIN:
+            break
+    return camera
+
+
+def _texture_levels(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
+                    sigmas: tuple[float, ...], iterations: int, margin: int, light_from: str, zoom: bool) -> Cameras:
+    """One coarse-to-fine pass of `refine_on_texture`."""
     for sigma in sigmas:
         scale = min(1.0, TEXTURE_SCALE_SIGMA / sigma)
         level_picture, level_mask = picture, mask
@@ -512,7 +548,7 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
             level_picture = F.interpolate(picture, size=size, mode="area")
             level_mask = F.interpolate(mask[:, None], size=size, mode="area")[:, 0]
         camera = _texture_level(mesh, camera, level_picture, level_mask, sigma * scale, iterations, margin,
-                                light_from)
+                                light_from, zoom)
     return camera
 
 
@@ -654,14 +690,26 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
     and with it the cost is lower off the true pose than at it; on the flat half the fit barely sees
     the pose error, but it has fewer and less varied pixels, and it loses on some meshes that the
     all-pixel fit reads. Keeping the start guards against runs that drift off a good pose. The second
-    run is skipped where the first plainly converged: there it would change nothing and only cost time."""
+    run is skipped where the first plainly converged: there it would change nothing and only cost time.
+    Where the best still fits the texture poorly (ZOOM_TRY), a run that also refines the field of view
+    (`refine_on_texture`'s `zoom`) goes on from it: a crop, or a picture made through another lens,
+    is registered a pixel or so off without it, and that costs a luminance mark its reading."""
     picture, mask = _working_size(picture, mask)
     results = [camera, refine_on_texture(mesh, camera, picture, mask, light_from="all")]
     misfits = texture_misfits(mesh, _joined(results), picture, mask)
+    lights = [None, "all"]
     if misfits[1] >= FLAT_RETRY * misfits[0] and misfits[1] >= FLAT_ENOUGH:
         results.append(refine_on_texture(mesh, camera, picture, mask, light_from="flat"))
         misfits.append(texture_misfit(mesh, results[-1], picture, mask))
-    return results[min(range(len(results)), key=misfits.__getitem__)]
+        lights.append("flat")
+    best = min(range(len(results)), key=misfits.__getitem__)
+    if misfits[best] < ZOOM_TRY:
+        return results[best]
+    # The field of view too, from the best, where the texture still fits poorly: kept only where it
+    # explains the texture clearly better (on a picture with the assumed field of view the weakly
+    # determined zoom only adds noise).
+    zoomed = refine_on_texture(mesh, results[best], picture, mask, light_from=lights[best] or "all", zoom=True)
+    return zoomed if texture_misfit(mesh, zoomed, picture, mask) < ZOOM_GAIN * misfits[best] else results[best]
 
 
 def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
@@ -727,17 +775,19 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
-                   iterations: int, margin: int, light_from: str) -> Cameras:
-    """One level of `refine_on_texture`, at the picture's (1, 3, H, W) own size."""
+                   iterations: int, margin: int, light_from: str, zoom: bool) -> Cameras:
+    """One level of `refine_on_texture`, at the picture's (1, 3, H, W) own size: six coordinates of a
+    rigid move, seven with `zoom`."""
+    n_coordinates = 7 if zoom else 6
     height = picture.shape[-2]
     with torch.no_grad():
         problem = _band_problem(mesh, camera, picture, mask, sigma, margin, light_from)
         if problem is None:
             return camera
         render_residual, _, inside, relit = problem
-        residual = lambda delta, **options: render_residual(_moved(camera, delta, height), **options)  # noqa: E731
+        residual = lambda delta, **options: render_residual(_zoomed(camera, delta, height), **options)  # noqa: E731
 
-        delta = torch.zeros(6, dtype=picture.dtype)
+        delta = torch.zeros(n_coordinates, dtype=picture.dtype)
         base, banded, fragments = residual(delta, with_image=True)
         base = base[0]
         # Cauchy weights (IRLS) on the coarse levels: what the relit original cannot explain there (a
@@ -749,13 +799,14 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         # Converged: a hundredth of a pixel; a coarse level, which finer ones follow, a twentieth.
         done = TEXTURE_DONE if robust is None else TEXTURE_COARSE_DONE
         for _ in range(iterations):
-            jacobian = _flow_jacobian(relit, _moved(camera, delta, height), banded, inside, fragments)
+            jacobian = _flow_jacobian(relit, _zoomed(camera, delta, height), banded, inside, fragments)[:, :n_coordinates]
             weight = torch.ones_like(base) if robust is None else 1.0 / (1.0 + (base / robust) ** 2)
             normal = jacobian.T @ (weight[:, None] * jacobian)
             scale = float(normal.diagonal().mean())
             if not scale > 1e-12:  # a flat band: nothing to align on (or not a number)
                 break
-            update = -torch.linalg.solve(normal + 1e-3 * scale * torch.eye(6), jacobian.T @ (weight * base))
+            damping = ZOOM_DAMPING if zoom else TEXTURE_DAMPING
+            update = -torch.linalg.solve(normal + damping * scale * torch.eye(n_coordinates), jacobian.T @ (weight * base))
             length = float(update.abs().max())
             for fraction in (1.0, 0.5, 0.25):
                 if fraction < 1.0 and fraction * length < done:  # a step this short would end the level anyway
@@ -772,12 +823,12 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
             cost = loss(base)
             if fraction * length < done:  # converged
                 break
-        return _moved(camera, delta, height)
+        return _zoomed(camera, delta, height)
 
 
 def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, inside: torch.Tensor,
                    fragments) -> torch.Tensor:
-    """The texture stage's Jacobian (M, 6) at `camera` from one render instead of twelve: a rigid move
+    """The texture stage's Jacobian (M, 7) at `camera` from one render instead of twelve: a rigid move
     (`_moved`) carries each surface point seen at an `inside` pixel (1, H, W) along an analytic screen
     flow, and the band-passed picture `banded` (1, 3, H, W) moves with it (brightness constancy: dI =
     -grad I . flow), as in Lucas-Kanade image alignment. `fragments`: the rasterization of `banded`'s
@@ -789,10 +840,15 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     at_pixel = points.new_zeros(height * width, 3).index_copy(0, fragments.pixel, points)
     seen = at_pixel[inside.reshape(-1)]  # (M, 3)
     flow = _screen_flow(camera, points.new_zeros(1, 6), seen[None], height, width)[:, 0]  # (6, M, 2)
+    # The zoom of `_zoomed`: each pixel moves away from the principal point, 1 px a unit at height / 2.
+    rows, columns = inside[0].nonzero(as_tuple=True)
+    centre_x, centre_y = width / 2 * (1 + camera.principal[0]), height / 2 * (1 - camera.principal[1])
+    zoom = torch.stack([columns + 0.5 - centre_x, rows + 0.5 - centre_y], -1).to(flow.dtype) * (2.0 / height)
+    flow = torch.cat([flow, zoom[None]])  # (7, M, 2)
     gradient_y, gradient_x = torch.gradient(banded[0], dim=(1, 2))
     pick = lambda g: g.permute(1, 2, 0)[inside[0]]  # noqa: E731  (M, 3)
-    jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (6, M, 3)
-    return jacobian.reshape(6, -1).T
+    jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (7, M, 3)
+    return jacobian.reshape(7, -1).T
 
 
 def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0,
@@ -839,8 +895,9 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
              candidates: int = 400, keep: int = 8, shading_weight: float = 0.3, fov_y: float = FOV,
              texture_refine: bool = True) -> Registration:
     """Find the camera of `picture` (3, H, W) in [0, 1] of `mesh` (one mesh in the canonical frame);
-    `mask` (H, W) marks the object's pixels; `fov_y` is the picture's vertical field of view (its
-    principal point is assumed at its centre). See the module docstring."""
+    `mask` (H, W) marks the object's pixels; `fov_y` is the picture's vertical field of view as first
+    assumed (the texture stage refines it where the texture says otherwise; the principal point is
+    assumed at the centre). See the module docstring."""
     target, target_mask, box, inside = frame_picture(picture, mask, SEARCH_SIZE, background)
     levels = _targets(target, target_mask, inside)
     fov, principal = crop_intrinsics(picture.shape[-2], picture.shape[-1], box[0], fov_y)
