@@ -14,6 +14,9 @@ from .framing import box_from_points, boxes_from_mask, inner_picture, object_mas
 from .pictures import camera_from_metadata, load_picture_and_codecs, picture_name
 
 MIN_OBJECT_PIXELS = 64  # fewer object pixels than this: nothing to read
+REGISTER_MIN_SIDE = 160  # an object whose box is narrower than this many pixels is registered on a copy enlarged ...
+REGISTER_MAX_FACTOR = 4  # ... by a whole factor, at most this one ...
+REGISTER_MAX_SIDE = 1024  # ... and to at most this many pixels a side
 
 
 @dataclass
@@ -28,6 +31,39 @@ class Reading:
     tries: int = 1  # what the decision multiplies the p-value by for the cameras a second look could try
     second_look: tuple = ()  # registered: (picture, mask, Registration.alternatives), until `second_look.look_again`
     object_mask: torch.Tensor | None = None  # camera from metadata: the picture's object (H, W) bool, for `why_not`
+
+
+def registration_factor(mask: np.ndarray) -> int:
+    """The whole factor by which a picture whose object's pixels are `mask` (H, W) is enlarged for
+    registration: 1, or enough to bring the object's box to REGISTER_MIN_SIDE pixels (within
+    REGISTER_MAX_FACTOR and REGISTER_MAX_SIDE). A luminance mark needs the camera to a few hundredths
+    of a pixel; on an object a hundred pixels wide (a halved picture) the texture stage, comparing the
+    picture with renders sampled at its own coarse pixels, stops a tenth of a pixel or more off, and
+    on a copy twice as large it does not."""
+    rows, columns = np.nonzero(mask > 0.5)
+    if len(rows) == 0:
+        return 1
+    side = max(int(rows.max() - rows.min()) + 1, int(columns.max() - columns.min()) + 1)
+    factor = min(REGISTER_MAX_FACTOR, -(-REGISTER_MIN_SIDE // side), REGISTER_MAX_SIDE // max(mask.shape))
+    return max(1, factor)
+
+
+def enlarged(picture: torch.Tensor, masks: list[torch.Tensor], recut, factor: int):
+    """The picture (3, H, W) enlarged `factor` times (bicubic), its object guesses (H, W) likewise
+    (each pixel repeated) and `recut` (an enlarged silhouette -> an enlarged guess) working at the
+    picture's own size: what `register_with_masks` takes, at the size it registers at."""
+    if factor == 1:
+        return picture, masks, recut
+    import torch.nn.functional as F
+
+    big = F.interpolate(picture[None], scale_factor=factor, mode="bicubic", align_corners=False)[0].clamp(0, 1)
+    grow = lambda m: m.repeat_interleave(factor, 0).repeat_interleave(factor, 1)  # noqa: E731
+    again = None
+    if recut is not None:
+        def again(silhouette: np.ndarray) -> np.ndarray:
+            small = silhouette.reshape(silhouette.shape[0] // factor, factor, -1, factor).mean((1, 3)) > 0.5
+            return np.repeat(np.repeat(recut(small), factor, 0), factor, 1)
+    return big, [grow(m) for m in masks], again
 
 
 class Reader:
@@ -82,15 +118,17 @@ class Reader:
         from .registration import register_with_masks
 
         guesses, recut = self._object_guesses(pixels, mask, alpha, original)
+        factor = registration_factor(mask)
+        picture, guesses, recut = enlarged(tensor[0].cpu(), guesses, recut, factor)
         with torch.enable_grad():
-            found = register_with_masks(self.on_cpu(original), tensor[0].cpu(), guesses, background_tensor.cpu(),
+            found = register_with_masks(self.on_cpu(original), picture, guesses, background_tensor.cpu(),
                                         fov_y=fov_y, recut=recut)
-        camera = found.camera.to(self.device)
+        camera = found.camera.to(self.device)  # a camera is the same for the picture at any size
         # one tensor for this reading and the second look: the codec found once
         seen = self._expect_codecs(tensor.clamp(0, 1), codecs)
         evidence = self.method.evidence(original, seen, camera)
         second_look = (seen.cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
-        return Reading(evidence, tuple(float(v) for v in found.box), "registered", found.iou, camera,
+        return Reading(evidence, tuple(float(v) / factor for v in found.box), "registered", found.iou, camera,
                        second_look=second_look)
 
     @staticmethod
