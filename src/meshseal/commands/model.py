@@ -61,7 +61,8 @@ def register(subparsers) -> None:
     detect.add_argument("--register", action="store_true",
                         help="find the picture's camera by registration even if the picture carries one")
     detect.add_argument("--fov", type=float, default=60.0,
-                        help="the picture's vertical field of view in degrees, for registration (default 60)")
+                        help="the picture's vertical field of view in degrees, where registration starts "
+                             "(default 60; it refines it where the texture says otherwise)")
     _key_argument(detect)
     expect = detect.add_mutually_exclusive_group()
     expect.add_argument("--expect", default=None, help="test for this one text message (p-value of the match)")
