@@ -79,17 +79,11 @@ def main() -> None:
         hit = attack_picture(args.attack, picture8, np.random.default_rng([0, index])).astype(np.float32) / 255
         camera, h, w = true_camera(cameras[[0]], args.attack, 256, 256)
         out = []
-        for how in ("true", "registered", "again", "up2"):
+        for how in ("true", "registered", "again"):
             started = time.perf_counter()
             try:
                 if how == "true":
                     reading = wm.read(hit, original, camera=camera)
-                elif how == "up2":  # registered on a copy twice the size, read on the picture itself
-                    from PIL import Image
-                    big = np.asarray(Image.fromarray(np.round(hit * 255).astype(np.uint8)).resize(
-                        (2 * w, 2 * h), Image.Resampling.BICUBIC)).astype(np.float32) / 255
-                    found = wm.read(big, original, register=True).found
-                    reading = wm.read(hit, original, camera=found)
                 else:
                     reading = wm.read(hit, original, register=True)
                     if how == "again":

@@ -58,7 +58,7 @@ class _InProcess:
         future: Future = Future()
         try:
             future.set_result(fn(*args))
-        except Exception as error:  # what a worker's future would carry
+        except Exception as error:  # noqa: BLE001  (what a worker's future would carry)
             future.set_exception(error)
         return future
 

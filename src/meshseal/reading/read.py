@@ -40,8 +40,7 @@ def registration_factor(mask: np.ndarray) -> int:
     of a pixel; on an object under a hundred pixels wide in a resized picture (whose pixels average
     the texture) the texture stage, comparing the picture with renders sampled at its own coarse
     pixels, stops a tenth of a pixel or more off, and on a copy twice as large it does not. A larger
-    object gains nothing (an enlarged point-sampled render is not a finer one) and takes four times
-    as long."""
+    object gains nothing (an enlarged point-sampled render is not a finer one) and takes longer."""
     rows, columns = np.nonzero(mask > 0.5)
     if len(rows) == 0:
         return 1
