@@ -615,15 +615,19 @@ def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_
     assert len(finished) == 1 and finished[0] is cameras  # the view showing nothing was not finished
 
 
-def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(tmp_path):
+def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(tmp_path, monkeypatch):
     """`meshseal detect --workers N` sends results between processes: a Detection, or with --pool a
-    registered reading settled (no picture, mask or refinement closures), so both pickle."""
+    registered reading settled (no picture, mask or refinement closures), so both pickle. (The small
+    object is registered at its own size here: the enlarged copy is not what this is about.)"""
     import pickle
 
     from PIL import Image
 
     from meshseal.api import Watermarker
     from meshseal.commands.model import _read_one
+    from meshseal.reading import read
+
+    monkeypatch.setattr(read, "REGISTER_MIN_SIDE", 0)
 
     model, _, original, marked = _original_and_marked_batches()
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
