@@ -799,7 +799,7 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
         # Converged: a hundredth of a pixel; a coarse level, which finer ones follow, a twentieth.
         done = TEXTURE_DONE if robust is None else TEXTURE_COARSE_DONE
         for _ in range(iterations):
-            jacobian = _flow_jacobian(relit, _zoomed(camera, delta, height), banded, inside, fragments)[:, :n_coordinates]
+            jacobian = _flow_jacobian(relit, _zoomed(camera, delta, height), banded, inside, fragments, zoom)
             weight = torch.ones_like(base) if robust is None else 1.0 / (1.0 + (base / robust) ** 2)
             normal = jacobian.T @ (weight[:, None] * jacobian)
             scale = float(normal.diagonal().mean())
@@ -827,8 +827,8 @@ def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask
 
 
 def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, inside: torch.Tensor,
-                   fragments) -> torch.Tensor:
-    """The texture stage's Jacobian (M, 7) at `camera` from one render instead of twelve: a rigid move
+                   fragments, zoom: bool = False) -> torch.Tensor:
+    """The texture stage's Jacobian (M, 6), or (M, 7) with `zoom`, at `camera` from one render instead of twelve: a rigid move
     (`_moved`) carries each surface point seen at an `inside` pixel (1, H, W) along an analytic screen
     flow, and the band-passed picture `banded` (1, 3, H, W) moves with it (brightness constancy: dI =
     -grad I . flow), as in Lucas-Kanade image alignment. `fragments`: the rasterization of `banded`'s
@@ -840,15 +840,15 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     at_pixel = points.new_zeros(height * width, 3).index_copy(0, fragments.pixel, points)
     seen = at_pixel[inside.reshape(-1)]  # (M, 3)
     flow = _screen_flow(camera, points.new_zeros(1, 6), seen[None], height, width)[:, 0]  # (6, M, 2)
-    # The zoom of `_zoomed`: each pixel moves away from the principal point, 1 px a unit at height / 2.
-    rows, columns = inside[0].nonzero(as_tuple=True)
-    centre_x, centre_y = width / 2 * (1 + camera.principal[0]), height / 2 * (1 - camera.principal[1])
-    zoom = torch.stack([columns + 0.5 - centre_x, rows + 0.5 - centre_y], -1).to(flow.dtype) * (2.0 / height)
-    flow = torch.cat([flow, zoom[None]])  # (7, M, 2)
+    if zoom:  # `_zoomed`'s seventh: each pixel moves away from the principal point, 1 px a unit at height / 2
+        rows, columns = inside[0].nonzero(as_tuple=True)
+        centre_x, centre_y = width / 2 * (1 + camera.principal[0]), height / 2 * (1 - camera.principal[1])
+        outward = torch.stack([columns + 0.5 - centre_x, rows + 0.5 - centre_y], -1).to(flow.dtype) * (2.0 / height)
+        flow = torch.cat([flow, outward[None]])  # (7, M, 2)
     gradient_y, gradient_x = torch.gradient(banded[0], dim=(1, 2))
     pick = lambda g: g.permute(1, 2, 0)[inside[0]]  # noqa: E731  (M, 3)
-    jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (7, M, 3)
-    return jacobian.reshape(7, -1).T
+    jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (6 or 7, M, 3)
+    return jacobian.reshape(len(flow), -1).T
 
 
 def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0,
