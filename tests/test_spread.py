@@ -454,6 +454,26 @@ def _assert_read_on_either_grid(wm, mesh, marked):
     assert not detection(mesh).detected
 
 
+def test_a_mark_too_faint_to_decode_is_found_by_its_expected_message():
+    """The owner who names the message (`--expect`) tests the mark's correlation with it, which needs
+    far less of the mark than the any-message test or the code: a faint mark no other test finds is
+    detected at the FPR, its message left unread; another message is not."""
+    from meshseal.api import load as load_model
+
+    wm = load_model("default")
+    bunny = load(FIXTURES / "bunny.glb")
+    original = wm.original(bunny)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
+    faint = wm.embed(bunny, "ab42", strength=0.07)
+    with torch.no_grad():
+        image = MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(faint))), cameras, lights, 128, 128).image
+    reading = wm.read(_quantise(image)[0].permute(1, 2, 0).numpy(), original, camera=cameras)
+    anything, named, other = (wm.decide([reading], expect=e) for e in (None, "ab42", "zz99"))
+    assert not anything.detected and anything.p_value > 1e-4
+    assert named.detected and named.p_value < 1e-7 and named.message is None
+    assert not other.detected and other.p_value > 1e-3
+
+
 def test_a_minified_texture_is_marked_on_coarser_cells_and_either_grid_is_read():
     """Where 128^2 cells would be a fraction of a pixel, `embed` marks on 64^2 cells; detection reads both
     grids there, so a mark on the model's own grid (made before) is still found, and a clean picture is not."""

@@ -326,6 +326,9 @@ def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
     assert list(report["attacks"]) == ["none", "jpeg75"]
     assert all(row["pictures"] == 2 and 0.0 <= row["bit_acc"] <= 1.0 for row in report["attacks"].values())
     assert report["attacks"]["none"]["detected"] == report["tpr_known_camera"]
+    # The owner who names the message detects every picture the any-message test does, and more.
+    assert all(row["named"] >= row["detected"] for row in report["attacks"].values())
+    assert report["tpr_message_named"] == report["attacks"]["none"]["named"]
     assert main(["eval", "--data", str(dataset), "--meshes", "1", "--attacks", "resize0.5"]) == 2
     assert "add --register" in capsys.readouterr().err
 

@@ -76,7 +76,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     `attacks` (names of `meshseal.attacks`): each 8-bit picture is also read after each attack (JPEG,
     WebP, resizing, crops, a screenshot, ...), registered (or, without `register`, with its camera:
     photometric attacks only), and `result["attacks"]` gives per attack the pictures, the share
-    detected and read exactly, the bit accuracy and the seconds a picture."""
+    detected and read exactly, the bit accuracy and the seconds a picture. `named` (and
+    `tpr_message_named`) is the share detected by the owner who names the message (`detect --expect`:
+    the match's p-value, on the reading `detect` made without it)."""
     from .. import payload
     from ..api import Watermarker
     from ..methods.spread import PALETTE_WARNING
@@ -162,6 +164,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             if coded:
                 row |= {"detected": found is not None and bool(found.detected),
                         "exact": found is not None and found.message == identity,
+                        "named": reading is not None and bool(watermarker.decide([reading], expect=identity).detected),
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
             rows.append(row | {"kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
@@ -181,6 +184,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     "kinds": kinds[view], "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
                     "exact": coded and decision is not None and decision.message == identity,
+                    "named": coded and got is not None and bool(watermarker.decide([got], expect=identity).detected),
                     "seconds": time.perf_counter() - started})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
@@ -209,7 +213,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         result |= {"max_flip": max_flip, "strength_mean": mean("strength"),
                    "strength_lowered": float(np.mean([r["strength"] < 1.0 for r in rows]))}
     if coded:
-        result |= {"tpr": mean("detected"), "exact_message": mean("exact"), "tpr_known_camera": mean("detected_known"),
+        result |= {"tpr": mean("detected"), "exact_message": mean("exact"), "tpr_message_named": mean("named"),
+                   "tpr_known_camera": mean("detected_known"),
                    "exact_message_known_camera": mean("exact_known"), "fpr_threshold": payload.FPR}
     if pooled:
         result |= {"tpr_pooled": mean("detected", pooled), "exact_message_pooled": mean("exact", pooled)}
@@ -233,12 +238,13 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             result["by_kind"][kind] = entry
     if attacked:
         result["attacks"] = {name: {"pictures": len(part), "detected": mean("detected", part) if coded else None,
-                                    "exact": mean("exact", part) if coded else None, "bit_acc": mean("bit_acc", part),
+                                    "exact": mean("exact", part) if coded else None,
+                                    "named": mean("named", part) if coded else None, "bit_acc": mean("bit_acc", part),
                                     "seconds": mean("seconds", part)} for name, part in attacked.items()}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
-            "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
+            "tpr_message_named", "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
             "strength_lowered", "by_kind",
             "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
     return result
