@@ -70,7 +70,8 @@ def test_the_flat_light_run_is_skipped_only_where_the_first_run_fits(monkeypatch
     monkeypatch.setattr(registration, "texture_misfit", lambda *a, **k: fake_misfits(*a, **k)[0])
     camera = replace(_view()[0], eye=torch.tensor([[60.0, 0.0, 0.0]]))  # never rendered: the fakes read its eye
     picture, mask = torch.zeros(1, 3, 32, 32), torch.ones(1, 32, 32)
-    for after, expected, enough in ((0.01, ["all"], registration.FLAT_ENOUGH), (0.03, ["all", "flat"], registration.FLAT_ENOUGH),
+    enough_now = registration.FLAT_ENOUGH
+    for after, expected, enough in ((0.5 * enough_now, ["all"], enough_now), (1.5 * enough_now, ["all", "flat"], enough_now),
                                     (0.01, ["all", "flat"], 0.0), (0.001, ["all"], 0.0)):
         runs.clear()
         misfit_after["all"] = after
@@ -106,3 +107,36 @@ def test_the_candidates_coarser_light_fit_still_explains_our_renders():
     rms = lambda predicted: float((seen - predicted).pow(2).mean().sqrt())  # noqa: E731
     assert rms(coarse) < 0.015 and rms(coarse) < 1.5 * rms(fine) + 0.002
     assert rms(coarse) < 0.2 * float((seen - seen.mean(0)).pow(2).mean().sqrt())
+
+
+def test_a_first_candidate_that_fits_the_texture_is_taken_without_refining_the_others(monkeypatch):
+    """`_refine_candidates` with `accept` refines the best-scored candidate alone first and takes it
+    where its texture misfit is under `accept`, leaving the others unrefined (misfits None); where it
+    fits worse, every candidate is refined and the pick is the usual one."""
+    refined_batches = []
+
+    def fake_coarse(mesh, cameras, levels):
+        refined_batches.append(len(cameras))
+        return replace(cameras, eye=cameras.eye + 0.5)
+
+    def fake_misfits(mesh, cameras, *args, **kwargs):  # the misfit is the eye's x before refinement
+        return [float(eye[0]) - 0.5 for eye in cameras.eye]
+
+    monkeypatch.setattr(registration, "_coarse_silhouettes", fake_coarse)
+    monkeypatch.setattr(registration, "texture_misfits", fake_misfits)
+    monkeypatch.setattr(registration, "_overlaps", lambda mesh, cameras, level: torch.ones(len(cameras)))
+    levels = {registration.SEARCH_SIZE: (None, torch.zeros(1, 1, 8, 8), None)}
+    base = _view()[0]
+
+    def candidates(*misfits):
+        eye = torch.tensor([[m, 0.0, 3.0] for m in misfits])
+        return replace(base, eye=eye, at=torch.zeros_like(eye), up=base.up.expand(len(misfits), 3))
+
+    refined, misfits, chosen = registration._refine_candidates(None, candidates(0.05, 0.01, 2.0), levels, accept=0.2)
+    assert refined_batches == [1] and chosen == 0 and misfits[1:] == [None, None] and len(refined) == 1
+    refined_batches.clear()
+    refined, misfits, chosen = registration._refine_candidates(None, candidates(0.5, 0.1, 2.0), levels, accept=0.2)
+    assert refined_batches == [1, 3] and chosen == 1 and torch.allclose(torch.tensor(misfits), torch.tensor([0.5, 0.1, 2.0]))
+    refined_batches.clear()
+    registration._refine_candidates(None, candidates(0.05, 0.01, 2.0), levels)  # no `accept`: all at once
+    assert refined_batches == [3]

@@ -48,7 +48,7 @@ PICK_MARGIN = 0.7  # another candidate replaces the best-scored one only if its 
 PICK_IOU_SLACK = 0.1  # ... and only if its refined silhouette's IoU is at most this much below the best one's
 TEXTURE_IOU_SLACK = 0.04  # the texture stage's camera is kept only if its silhouette's IoU is at most this much below the start's
 FLAT_RETRY = 0.1  # the texture stage tries the flat-half light only if the all-pixel one left this share of the misfit or more
-FLAT_ENOUGH = 0.02  # ... and a texture misfit (sigma 1) of this or more: under it the all-pixel light's run fits as a registered pose does
+FLAT_ENOUGH = 0.05  # ... and a texture misfit (sigma 1) of this or more: under it the all-pixel light's run fits as a registered pose does (the flat-half run ends within a tenth of a pixel of it there)
 RECUT_ROUNDS = 2  # `register_with_masks`: at most this many guesses in a row cut again from a registered silhouette
 RECUT_BELOW_IOU = 0.9  # ... only where the registered silhouette's IoU with its own guess is under this (a mask it disagrees with)
 MIN_RECUT_PIXELS = 64  # ... a cut smaller than this is not registered
@@ -868,20 +868,34 @@ def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_ang
     return chosen
 
 
-def _refine_candidates(mesh: MeshBatch, cameras: Cameras, levels, margin: float = PICK_MARGIN):
+def _coarse_silhouettes(mesh: MeshBatch, cameras: Cameras, levels) -> Cameras:
+    """Cameras refined coarsely on their silhouettes (COARSE_SILHOUETTE_SIGMAS at COMPARE_SIZE, one batch)."""
+    for sigma in COARSE_SILHOUETTE_SIGMAS:
+        cameras = _refine_silhouettes(mesh, cameras, levels[COMPARE_SIZE], sigma)
+    return cameras
+
+
+def _refine_candidates(mesh: MeshBatch, cameras: Cameras, levels, margin: float = PICK_MARGIN,
+                       accept: float | None = None):
     """Candidate `cameras` (best-scored first) refined coarsely on their silhouettes, their texture
     misfits (PICK_SIGMAS; inf for a candidate whose refined silhouette overlaps clearly worse than the
     best one's) and the index picked: the first, unless another fits the texture better than `margin`
-    times its misfit."""
-    refined = cameras
-    for sigma in COARSE_SILHOUETTE_SIGMAS:
-        refined = _refine_silhouettes(mesh, refined, levels[COMPARE_SIZE], sigma)
+    times its misfit. With `accept`, the first is refined alone first and picked at once where its
+    misfit is under `accept` (a registered view's): no other could then be much nearer the picture's
+    view than it, and the finer stages take it to the same pose. The others are then left as they
+    were, their misfits None (`register` offers them for a second look, refined only if asked)."""
+    target, target_mask, _ = levels[SEARCH_SIZE]
+    if accept is not None and len(cameras) > 1:
+        first = _coarse_silhouettes(mesh, cameras[[0]], levels)
+        misfit = texture_misfits(mesh, first, target, target_mask[:, 0], PICK_SIGMAS)[0]
+        if misfit < accept:
+            return first, [misfit] + [None] * (len(cameras) - 1), 0
+    refined = _coarse_silhouettes(mesh, cameras, levels)
     # Symmetric shapes leave several views with the same silhouette: the texture tells them apart. The
     # best-scored candidate stays unless another fits the texture clearly better: a candidate a few
     # degrees off fits the fine bands as badly as a wrong view, so a plain minimum of the misfit would
     # often throw the right one away.
     # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
-    target, target_mask, _ = levels[SEARCH_SIZE]
     overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
     scored = [i for i in range(len(refined)) if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK]
     misfits = [math.inf] * len(refined)
@@ -923,8 +937,12 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
     # 2. Refine the best few coarsely, then the best of them finely, on blurred silhouettes (a wider
     # blur first: its basin is wider).
-    refined, misfits, chosen = _refine_candidates(mesh, search[best], levels)
-    others = sorted((i for i in range(len(refined)) if i != chosen and math.isfinite(misfits[i])), key=misfits.__getitem__)
+    refined, misfits, chosen = _refine_candidates(mesh, search[best], levels, accept=ACCEPT_MISFIT)
+    if misfits[1:] and misfits[1] is None:  # the first was taken at once: the others, best-scored first, as they are
+        others = list(range(1, len(best)))
+    else:
+        others = sorted((i for i in range(len(refined)) if i != chosen and math.isfinite(misfits[i])),
+                        key=misfits.__getitem__)
 
     def on_silhouettes(camera: Cameras) -> Cameras:
         """The picked candidate refined finely on silhouettes: the camera of the whole picture."""
@@ -947,7 +965,11 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
         return on_texture(on_silhouettes(camera))
 
     camera = finish(refined[[chosen]])
-    alternatives = tuple(Alternative(refined[[i]], on_silhouettes, on_texture) for i in others[:ALTERNATIVES])
+    if misfits[1:] and misfits[1] is None:
+        alternatives = tuple(Alternative(search[[best[i]]], lambda c: on_silhouettes(_coarse_silhouettes(mesh, c, levels)),
+                                         on_texture) for i in others[:ALTERNATIVES])
+    else:
+        alternatives = tuple(Alternative(refined[[i]], on_silhouettes, on_texture) for i in others[:ALTERNATIVES])
     if texture_refine and RETRY_KEEP:
         # 4. A registration the texture does not confirm tries more views, nearer each other: a view
         # a few degrees from the truth can rank far down the first score and lose its place among
