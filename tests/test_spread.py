@@ -97,14 +97,15 @@ def test_embed_reports_object_pixel_visibility_and_writes_a_preview(tmp_path, ca
     bits = "01" * 32
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # on a terminal: stage lines on stderr
     assert main(["embed", str(FIXTURES / "bunny.glb"), "-o", str(tmp_path / "b.glb"), "--bits", bits,
-                 "--views", "1", "--json", "--preview", str(tmp_path / "sheet.png")]) == 0
+                 "--views", "1", "--max-flip", "0.05", "--json", "--preview", str(tmp_path / "sheet.png")]) == 0
     captured = capsys.readouterr()
     report = json.loads(captured.out)  # stdout: the one JSON object
     stages = [line for line in captured.err.splitlines() if line.startswith("meshseal: [")]
     assert [line.split("] ")[1].split()[0] for line in stages] == ["loading", "marking", "writing", "measuring",
                                                                   "writing"], captured.err
     monkeypatch.undo()
-    assert 39.8 < report["psnr_texture_shown"] < 40.2 and report["cells"] == 128  # the bunny's cells are over a pixel
+    assert report["strength"] == 1.0  # within this budget
+    assert 39.8 < report["psnr_texture_shown"] < 40.2 and report["cells"] == 64  # the default's own grid on the bunny
     assert report["psnr_texture"] > report["psnr_texture_shown"]  # texels no face shows stay as they were
     assert report["psnr_object"] < report["psnr_frame"]  # the background inflates the whole-frame figure
     assert 0.0 < report["flip_object"] < 0.05 and report["ssim_object"] > 0.98

@@ -294,7 +294,7 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
                       grids: tuple[int, ...]) -> torch.Tensor:
     """The matched filter's evidence per cell (1, sum C*C) read from a texture (1, 3, H, W) itself, with
     no original to subtract: the texels `used` (H, W), projected on the mark's colour, with the
-    texture's slow content taken off and its local variance divided out at the scale of a cell
+    texture's slow content taken off and its local variance divided out at the scale of two cells
     (`whiten` in texture space), weighted by the mark's amplitude and accumulated into each grid's
     cells as `cell_sums` does. The host texture stays in the sums as noise, but every step depends on
     the texture alone, never on a key's signs: `soft_bits` / `bit_weights` of these sums keep the exact
@@ -311,7 +311,9 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
     image_index = torch.zeros(len(rows), dtype=torch.long, device=texture.device)
     sums = []
     for chips in grids:
-        sigma = max(width / chips, 1.0)  # a cell's width in texels
+        # Two cells' width in texels: the mark varies between cell centres, so a window of one cell
+        # takes much of it off with the host's slow content.
+        sigma = max(2.0 * width / chips, 1.0)
         detail = projected - gaussian_blur(projected, sigma)
         variance = gaussian_blur(detail * detail, sigma)
         variance = torch.maximum(variance, 0.05 * variance.median().clamp_min(1e-12))
