@@ -938,7 +938,8 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     # 2. Refine the best few coarsely, then the best of them finely, on blurred silhouettes (a wider
     # blur first: its basin is wider).
     refined, misfits, chosen = _refine_candidates(mesh, search[best], levels, accept=ACCEPT_MISFIT)
-    if misfits[1:] and misfits[1] is None:  # the first was taken at once: the others, best-scored first, as they are
+    taken_at_once = len(misfits) > 1 and misfits[1] is None  # the others left unrefined
+    if taken_at_once:  # the others, best-scored first, as they are
         others = list(range(1, len(best)))
     else:
         others = sorted((i for i in range(len(refined)) if i != chosen and math.isfinite(misfits[i])),
@@ -965,7 +966,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
         return on_texture(on_silhouettes(camera))
 
     camera = finish(refined[[chosen]])
-    if misfits[1:] and misfits[1] is None:
+    if taken_at_once:
         alternatives = tuple(Alternative(search[[best[i]]], lambda c: on_silhouettes(_coarse_silhouettes(mesh, c, levels)),
                                          on_texture) for i in others[:ALTERNATIVES])
     else:
