@@ -71,6 +71,21 @@ def test_a_run_can_start_from_another_with_a_part_frozen(dataset, tmp_path):
         Trainer(_config(dataset, frozen=["spoiler"]), tmp_path / "bad", log=lambda *_: None)
 
 
+def test_a_run_continues_from_another_under_settings_that_hold_no_weights(dataset, tmp_path):
+    """A run continued with a quieter mark starts from the first run's weights; another architecture is refused."""
+    start = str(tmp_path / "first" / "model.safetensors")
+    Trainer(_config(dataset, steps=2, val_every=2, checkpoint_every=2), tmp_path / "first", log=lambda *_: None).fit()
+    quieter = _config(dataset, steps=1, pretrain_steps=0, init_from=start)
+    quieter.model.texture_rms = TINY["model"].get("texture_rms", 0.0) + 0.01
+    continued = Trainer(quieter, tmp_path / "second", log=lambda *_: None)
+    first = load_model(start).state_dict()
+    assert all(torch.equal(first[k], v.cpu()) for k, v in continued.model.state_dict().items())
+    wider = _config(dataset, init_from=start)
+    wider.model.decoder_channels += 8
+    with pytest.raises(meshseal.MeshsealError, match="same architecture"):
+        Trainer(wider, tmp_path / "wider", log=lambda *_: None)
+
+
 def test_training_writes_logs_checkpoints_and_weights(dataset, tmp_path):
     summary = Trainer(_config(dataset), tmp_path / "run", log=lambda *_: None).fit()
     assert summary["steps"] == 6

@@ -450,13 +450,16 @@ class Trainer:
         return {name: float(torch.cat(values).mean()) for name, values in rows.items()}
 
     def _start_from(self, path: Path) -> None:
-        """Weights of another run (the paper's Table 8: a texture encoder trained on images alone)."""
+        """Weights of another run of the same architecture (the paper's Table 8: a texture encoder trained
+        on images alone; or a run continued under other settings, such as a quieter `texture_rms`): the
+        weights' names and shapes must match, settings that hold no weights may differ."""
         from ..models.io import load_model
 
-        source = load_model(path)
-        if source.config != self.model.config:
+        weights = load_model(path).state_dict()
+        own = self.model.state_dict()
+        if {k: tuple(v.shape) for k, v in weights.items()} != {k: tuple(v.shape) for k, v in own.items()}:
             raise MeshsealError(f"{path}: its model differs from this config's (init_from needs the same architecture)")
-        self.model.load_state_dict(source.state_dict())
+        self.model.load_state_dict(weights)
 
     # -------------------------------------------------------- checkpoints
     def _checkpoint(self) -> None:
