@@ -149,6 +149,17 @@ def test_framing_finds_the_object_and_crops_square():
     assert torch.allclose(framed[0, :, 0, 0], torch.tensor([0.9, 0.9, 0.9]), atol=1e-4)
 
 
+def test_a_batch_frames_each_picture_as_it_would_be_framed_alone():
+    """A large object beside a small one: the small one keeps its detail (no shrink by the batch's largest box)."""
+    generator = torch.Generator().manual_seed(0)
+    pictures = torch.rand(2, 3, 240, 320, generator=generator)
+    boxes = torch.tensor([[160.0, 120.0, 110.0], [100.0, 90.0, 40.0]])  # sides 220 and 80 px, framed to 64
+    together = crop_boxes(pictures, boxes, 64)
+    alone = torch.cat([crop_boxes(pictures[i:i + 1], boxes[i:i + 1], 64) for i in range(2)])
+    assert torch.allclose(together, alone, atol=1e-6)
+    assert float(together[1].std()) > 0.15  # shrunk as the 220 px box would be, the noise averages out (std about 0.06)
+
+
 def test_fixed_power_mark_has_the_configured_rms():
     config = ModelConfig.from_dict(dict(SMALL, n_bits=8, texture_rms=0.05, texture_tile=4))
     model = WatermarkModel(config).eval()

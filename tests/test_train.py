@@ -109,6 +109,17 @@ def test_same_seed_same_numbers_and_resume_continues_exactly(dataset, tmp_path):
         assert torch.allclose(first[key].float(), resumed[key].float(), atol=1e-6), key
 
 
+def test_a_run_made_in_parts_with_stop_at_equals_the_run_made_at_once(dataset, tmp_path):
+    """--stop-at ends a run early without changing its schedules, so the parts, resumed, give the whole run."""
+    whole = Trainer(_config(dataset, lr_decay_from=2), tmp_path / "whole", log=lambda *_: None).fit()
+    part = Trainer(_config(dataset, lr_decay_from=2, stop_at=4), tmp_path / "parts", log=lambda *_: None).fit()
+    assert part["steps"] == 4 and whole["steps"] == 6
+    Trainer(_config(dataset, lr_decay_from=2), tmp_path / "parts", resume=True, log=lambda *_: None).fit()
+    first, second = (load_file(str(tmp_path / run / "model.safetensors")) for run in ("whole", "parts"))
+    for key in first:
+        assert torch.allclose(first[key].float(), second[key].float(), atol=1e-6), key
+
+
 def _texture_config(data, **train):
     config = _config(data, **({"gbuffer_views": 2, "retexture": 0.0} | train))
     config.model.strategy = "texture"

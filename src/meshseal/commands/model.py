@@ -121,6 +121,9 @@ def register(subparsers) -> None:
                        help="torch device: auto (cuda when one is there, else cpu) | cpu | cuda | cuda:N")
     train.add_argument("--time-limit", type=float, default=None, metavar="MINUTES",
                        help="override the config's time_limit_minutes (total training time, resumed runs included)")
+    train.add_argument("--stop-at", type=int, default=None, metavar="STEP",
+                       help="stop after this step; the learning-rate and mark schedules still run to the config's steps "
+                            "(a run made in parts, each continued with --resume)")
     train.set_defaults(func=run_train)
 
     tune = subparsers.add_parser("finetune", help="fine-tune a learned decoder on another engine's pictures",
@@ -547,6 +550,10 @@ def run_train(args) -> int:
         raise MeshsealError(f"{config.data}: no dataset folder; build one with 'meshseal data build --out {config.data}'")
     if args.time_limit is not None:
         config.train.time_limit_minutes = args.time_limit
+    if args.stop_at is not None:
+        if args.stop_at < 1:
+            raise MeshsealError(f"--stop-at {args.stop_at}: a step number of 1 or more")
+        config.train.stop_at = args.stop_at
     out = args.out or Path("runs") / config.name
     trainer = Trainer(config, out, resume=args.resume, device=_train_device(args.device))
     summary = trainer.fit()

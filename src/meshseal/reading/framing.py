@@ -52,11 +52,15 @@ def _square_box(top: float, bottom: float, left: float, right: float, margin: fl
 
 def crop_boxes(image: torch.Tensor, boxes: torch.Tensor, size: int, background: torch.Tensor | None = None) -> torch.Tensor:
     """Crop square boxes (B, 3) from images (B, C, H, W) and resample to (B, C, size, size), bilinear,
-    with antialiasing when shrinking. Outside the image is `background` (B, C) (default 0)."""
+    with antialiasing when shrinking, each picture by its own box's factor (a batch frames every
+    picture as it would be framed alone). Outside the image is `background` (B, C) (default 0)."""
     n, channels, height, width = image.shape
     boxes = boxes.to(image.device, image.dtype)
     if background is None:
         background = image.new_zeros(n, channels)
+    shrinks = 2 * boxes[:, 2] / size
+    if n > 1 and bool((shrinks > 1.5).any()) and bool((shrinks != shrinks[0]).any()):
+        return torch.cat([crop_boxes(image[i:i + 1], boxes[i:i + 1], size, background[i:i + 1]) for i in range(n)])
     shift = background.reshape(n, channels, 1, 1)
     shrink = float((2 * boxes[:, 2]).max()) / size
     source = image - shift

@@ -73,6 +73,7 @@ class TrainSettings:
     checkpoint_every: int = 250
     checkpoint_minutes: float | None = None  # also checkpoint this often (runs on short device leases)
     time_limit_minutes: float | None = None
+    stop_at: int | None = None  # stop after this step, the schedules still running to `steps` (a run made in parts)
     retexture: float = 0.0
     texture_kinds: list | None = None  # only items whose texture is of these kinds (own | real | noise)
     unrender_jitter: float = 0.0  # informed models: pose error (pixels) of the un-rendering camera (ramps up over warmup_steps)
@@ -483,7 +484,8 @@ class Trainer:
             return
         save_model(self.model, self.out / "model.safetensors",
                    {"name": self.config.name, "steps": self.step, "seed": self.config.seed,
-                    "training_seconds": round(self.elapsed, 1), "train_config": self.config.to_dict()})
+                    "training_seconds": round(self.elapsed, 1), "train_config": self.config.to_dict(),
+                    "device": torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else "cpu"})
 
     def _restore(self) -> None:
         from safetensors import safe_open
@@ -661,13 +663,13 @@ class Trainer:
         stopped_early = False
         every = self._log_every()
         saved_at = time.time()
-        while self.step < cfg.steps:
+        while self.step < min(cfg.steps, cfg.stop_at or cfg.steps):
             stats = self.train_step(next(batches))
             self.step += 1
             self.elapsed = time.time() - start
             pending.append((self.step, stats))
             bar.update(1)
-            last = self.step >= cfg.steps
+            last = self.step >= cfg.steps or (cfg.stop_at is not None and self.step >= cfg.stop_at)
             if cfg.time_limit_minutes is not None:
                 over = self.elapsed > 60 * cfg.time_limit_minutes
                 if self.world.distributed:  # several processes stop at the same step: they agree now and then
