@@ -150,6 +150,25 @@ def test_texture_models_train_on_cached_gbuffers_and_resume_exactly(dataset, tmp
         assert torch.allclose(a[key].float(), c[key].float(), atol=1e-6), key
 
 
+def test_supersampled_views_are_baked_larger_and_box_filtered_to_the_frame(dataset, tmp_path):
+    """gbuffer_supersample k: views baked at k times the frame, each picture the k x k mean of the large one."""
+    from meshseal.training.gbuffer import composite
+
+    quiet = lambda *_: None  # noqa: E731
+    trainer = Trainer(_texture_config(dataset, gbuffer_supersample=2, steps=1), tmp_path / "ss", log=quiet)
+    frame = trainer.model.config.frame_size
+    views = trainer.views["test"][:2]
+    assert views.uv.shape[1] == 2 * frame
+    message = torch.ones(2, trainer.model.n_bits)
+    out = trainer._gbuffer_pass(views, "test", message, torch.zeros(2, 3))
+    assert out["picture"].shape[-1] == frame
+    large = composite(out["texture"], views, torch.zeros(2, 3))
+    assert torch.allclose(out["original"], large.unflatten(2, (frame, 2)).unflatten(4, (frame, 2)).mean((3, 5)), atol=1e-6)
+    assert trainer.fit()["steps"] == 1
+    with pytest.raises(meshseal.MeshsealError, match="gbuffer_supersample"):
+        Trainer(_texture_config(dataset, gbuffer_supersample=0), tmp_path / "none", log=quiet)
+
+
 def test_vertex_marks_train_on_baked_views_too_and_informed_models_are_refused(dataset, tmp_path):
     """A vertex + texture mark trains on baked views that keep each pixel's face and barycentrics (the
     marked normals and uvs re-shade them); `gbuffer: off` renders every step; an informed decoder reads

@@ -84,6 +84,7 @@ class TrainSettings:
     frozen: list | None = None  # parts kept as they start: texture_encoder | vertex_encoder | decoder
     gbuffer: str = "auto"  # auto: texture-only blind models train on cached G-buffers (training.gbuffer); off
     gbuffer_views: int = 8  # baked views per training mesh (each its own camera, light and 3D distortion)
+    gbuffer_supersample: int = 1  # views baked at this many times the frame size, each picture box-filtered down to it
     log_every: int = 0  # steps between log rows (one host round trip each); 0: 1 on the CPU, 50 on a GPU
     amp: bool = True  # bfloat16 autocast on CUDA
 
@@ -274,6 +275,9 @@ class Trainer:
             and model.decoder is not None
         if mode == "on" and not applies:
             raise MeshsealError("gbuffer: on needs learned encoders and a blind decoder")
+        if self.config.train.gbuffer_supersample < 1:
+            raise MeshsealError(f"gbuffer_supersample: {self.config.train.gbuffer_supersample} (1 or more: views baked at "
+                                "that many times the frame size)")
         return mode != "off" and applies
 
     def _check_distributed(self) -> None:
@@ -297,7 +301,7 @@ class Trainer:
 
         cfg = self.config.train
         folder = Path(self.config.data) / "gbuffers"
-        size = self.model.config.frame_size
+        size = self.model.config.frame_size * cfg.gbuffer_supersample
         surface = self.model.vertex_encoder is not None
         distort = Distortions3D(cfg.distortion_3d, p_rotation=0.0 if surface else 0.25) if cfg.distortion_3d > 0 else None
         if self.world.distributed and not self.world.main:
@@ -363,7 +367,7 @@ class Trainer:
         if views.surface is None:
             with self._autocast():
                 out["marked"] = self.model.texture_encoder(texture, message).float()
-            picture = composite(out["marked"], views, background)
+            picture = self._down(composite(out["marked"], views, background))
         else:
             geometry = {key: value[views.item] for key, value in bank[f"{split}_geometry"].items()}
             mask = vertex_mask(geometry)
@@ -371,16 +375,23 @@ class Trainer:
                 marked = self.model.embed(geometry["positions"], geometry["normals"], geometry["uvs"], texture, message,
                                           mask)
             normals, uvs, out["marked"] = (value.float() for value in marked)
-            picture = composite_surface(out["marked"], normals, uvs, geometry["faces"], views, background)
+            picture = self._down(composite_surface(out["marked"], normals, uvs, geometry["faces"], views, background))
             out |= {"normals": geometry["normals"], "normals_marked": normals, "uvs": geometry["uvs"],
                     "uvs_marked": uvs, "vertex_mask": mask}
         with torch.no_grad():
-            out["original"] = composite(texture, views, background)
+            out["original"] = self._down(composite(texture, views, background))
         seen = picture if attack is None else attack(picture, self.generator)
         with self._autocast():
             out["logits"] = self.model.decode(seen).float()
         out["picture"] = picture
         return out
+
+    def _down(self, pictures: torch.Tensor) -> torch.Tensor:
+        """Pictures composited from supersampled views, box-filtered to the frame size: the view as a
+        picture rendered larger than the frame and shrunk with antialiasing (how `detect` frames a
+        picture where the object spans more pixels than the frame)."""
+        factor = self.config.train.gbuffer_supersample
+        return pictures if factor == 1 else F.avg_pool2d(pictures, factor)
 
     def _gbuffer_step(self, index, message, distorting: bool):
         cfg, weights, bank = self.config.train, self.config.loss, self.views
