@@ -121,8 +121,10 @@ def main() -> int:
     config = json.loads(metadata["config"])
     train_config = json.loads(metadata.get("train_config", "{}"))
     steps = int(metadata.get("steps") or 0)
+    device = metadata.get("device", "cpu")
+    where = "this repository's 2-core CPU machine" if device == "cpu" else f"one {device}"
     built = (f"(seed {metadata.get('seed')}, {steps} steps, {float(metadata.get('training_seconds', 0)) / 60:.1f} min on "
-             "this repository's 2-core CPU machine)" if steps else
+             f"{where})" if steps else
              "(nothing is learned: the pattern is drawn from the config's seeds in well under a second)")
     from meshseal.payload import SCHEMAS, payload_bits
 
@@ -135,7 +137,9 @@ def main() -> int:
         f"`{target.name}` ({target.stat().st_size / 1e3:.1f} kB, safetensors).",
         *method_lines(method),
         f"- Built by: `meshseal train --config configs/{train_config.get('name', args.name)}.yaml --out {args.run}` "
-        f"{built}.",
+        f"{built}"
+        + (f", starting from the weights of `{train_config['train']['init_from']}`" if train_config.get("train", {}).get("init_from")
+           else "") + ".",
         f"- Data: `meshseal data build --out {args.data}`: {stats.get('n_train')} train / {stats.get('n_test')} test "
         f"meshes, {stats.get('n_textures')} real texture images, {stats.get('n_categories')} categories "
         "(Debian packages; see the dataset's manifest for sources and licenses).",

@@ -28,6 +28,7 @@ class LearnedMethod(Method):
     def __init__(self, model):
         super().__init__(model)
         self.informed = model.config.decoder == "uv"
+        self.paper_pictures = not self.informed  # a blind decoder learned the paper's protocol: read its pictures
 
     def describe(self) -> str:
         """The model card's sentence on the embedder(s) and the extractor."""
