@@ -1,6 +1,8 @@
 """Cached G-buffers (meshseal.training.gbuffer): a baked view composited with a texture is the render."""
 
 import math
+import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -10,6 +12,8 @@ from meshseal.reading.framing import BOX_MARGIN
 from meshseal.render.views import sample_views
 from meshseal.render import MeshBatch, MeshRenderer
 from meshseal.training.gbuffer import GBuffers, bake_views, composite
+
+FIXTURES = Path(__file__).parent / "fixtures"
 
 
 def _spheres(n: int) -> dict:
@@ -102,3 +106,25 @@ def test_a_vertex_mark_reshades_baked_views_as_the_renderer_does():
     assert (picture.detach() - expected).abs().max() < 1e-4
     picture.sum().backward()
     assert normals.grad.abs().sum() > 0 and uvs.grad.abs().sum() > 0
+
+
+def test_a_bank_baked_in_processes_is_the_bank_baked_in_one(tmp_path):
+    """Each chunk draws from its own generator: a worker process baking the chunks in turn bakes the views this
+    process bakes (a pool of one: each worker's start-up is a second of the test tier)."""
+    from meshseal.data.build import build
+    from meshseal.data.dataset import MeshDataset
+    from meshseal.training.gbuffer import bake
+
+    source = tmp_path / "src"
+    source.mkdir()
+    for name in ("bunny.glb", "suzanne.glb"):
+        shutil.copy(FIXTURES / name, source / name)
+    build(tmp_path / "data", sources=[], texture_sources=[], from_folder=source, textures_dir=FIXTURES / "textures",
+          seed=0, n_faces=300, texture_size=32, workers=1, license_="CC0-1.0", test_fraction=0.0)
+    dataset = MeshDataset(tmp_path / "data", "train", seed=0)
+    assert len(dataset) >= 2
+    alone = bake(dataset, 2, 24, "seed", 5, batch_size=1)
+    pooled = bake(dataset, 2, 24, "seed", 5, batch_size=1, workers=1)
+    assert torch.equal(alone.item, pooled.item) and torch.equal(alone.mask, pooled.mask)
+    assert torch.equal(alone.uv, pooled.uv) and torch.equal(alone.shade, pooled.shade)
+    assert len(set(alone.item.tolist())) == len(dataset) and bool(alone.mask.any())

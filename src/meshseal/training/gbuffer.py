@@ -156,30 +156,50 @@ def bake_views(batch: dict, cameras, lights, size: int, framed: bool = True, dis
 
 
 def bake(dataset, views: int, size: int, sampler: str = "seed", seed: int = 0, distortions_3d=None,
-         batch_size: int = 16, progress=None, surface: bool = False) -> GBuffers:
-    """`views` framed views of every item of `dataset` (cameras and lights from `sampler`'s ranges),
-    drawn from `seed` alone; `surface`: with what a vertex mark needs (`Surface`)."""
-    from ..render.views import sample_views
+         batch_size: int = 16, progress=None, surface: bool = False, workers: int = 0) -> GBuffers:
+    """`views` framed views of every item of `dataset` (cameras and lights from `sampler`'s ranges);
+    `surface`: with what a vertex mark needs (`Surface`). The items are baked in chunks of
+    `batch_size` per view, each chunk drawing its cameras, lights and 3D distortions from its own
+    generator (seeded by `seed`, the view and the chunk), so `workers` spawned one-thread processes
+    (0: this process) bake the same bank as one process does."""
+    chunks = [(dataset, view, list(range(start, min(len(dataset), start + batch_size))), size, sampler, seed,
+               distortions_3d, surface) for view in range(views) for start in range(0, len(dataset), batch_size)]
+    if workers > 0 and len(chunks) > 1:
+        from ..data.build import _executor
 
-    generator = torch.Generator().manual_seed(seed)
-    parts = []
-    with torch.no_grad():
-        for view in range(views):
-            for start in range(0, len(dataset), batch_size):
-                index = list(range(start, min(len(dataset), start + batch_size)))
-                batch = collate([_geometry(dataset, i) for i in index])
-                cameras, lights = sample_views(len(index), sampler, generator)
-                part = bake_views(batch, cameras, lights, size, True, distortions_3d, generator, surface)
-                if part.surface is not None:
-                    part.surface.bary, part.surface.world = part.surface.bary.half(), part.surface.world.half()
-                parts.append(GBuffers(part.uv.half(), part.shade.half(), part.mask, torch.tensor(index), part.surface))
+        with _executor(min(workers, len(chunks))) as pool:
+            futures = [pool.submit(_bake_chunk, *chunk) for chunk in chunks]
+            parts = []
+            for future, chunk in zip(futures, chunks):
+                parts.append(future.result())
                 if progress is not None:
-                    progress(len(index))
+                    progress(len(chunk[2]))
+    else:
+        parts = []
+        for chunk in chunks:
+            parts.append(_bake_chunk(*chunk))
+            if progress is not None:
+                progress(len(chunk[2]))
     found = None
     if surface:
         found = Surface(*(torch.cat([getattr(p.surface, name) for p in parts]) for name in
                           ("face", "bary", "world", "eye", "light_position", "light_intensity")))
     return GBuffers(*(torch.cat([getattr(p, name) for p in parts]) for name in ("uv", "shade", "mask", "item")), found)
+
+
+@torch.no_grad()
+def _bake_chunk(dataset, view: int, index: list[int], size: int, sampler: str, seed: int, distortions_3d,
+                surface: bool) -> GBuffers:
+    """One chunk of `bake`: the items `index` in one view each, drawn from the chunk's own generator."""
+    from ..render.views import sample_views
+
+    generator = torch.Generator().manual_seed(((seed * 1_000_003 + view) * 1_000_033 + index[0]) % 2 ** 63)
+    batch = collate([_geometry(dataset, i) for i in index])
+    cameras, lights = sample_views(len(index), sampler, generator)
+    part = bake_views(batch, cameras, lights, size, True, distortions_3d, generator, surface)
+    if part.surface is not None:
+        part.surface.bary, part.surface.world = part.surface.bary.half(), part.surface.world.half()
+    return GBuffers(part.uv.half(), part.shade.half(), part.mask, torch.tensor(index), part.surface)
 
 
 def _geometry(dataset, index: int) -> dict:
@@ -191,14 +211,14 @@ def _geometry(dataset, index: int) -> dict:
 
 
 def cached_bake(dataset, path, views: int, size: int, sampler: str, seed: int, distortions_3d=None,
-                log=print, surface: bool = False) -> GBuffers:
-    """`bake`, kept in `path` (a .npz) and reused while the dataset's items (a `MeshDataset` or a Subset
-    of one) and the settings are the same."""
+                log=print, surface: bool = False, workers: int = 0) -> GBuffers:
+    """`bake` (in `workers` processes), kept in `path` (a .npz) and reused while the dataset's items (a
+    `MeshDataset` or a Subset of one) and the settings are the same."""
     if isinstance(dataset, torch.utils.data.Subset):
         ids = [dataset.dataset.rows[i]["id"] for i in dataset.indices]
     else:
         ids = [row["id"] for row in dataset.rows]
-    meta = {"ids": hashlib.sha256("\n".join(ids).encode()).hexdigest(), "views": views, "size": size,
+    meta = {"format": 2, "ids": hashlib.sha256("\n".join(ids).encode()).hexdigest(), "views": views, "size": size,
             "sampler": sampler, "seed": seed, "margin": BOX_MARGIN, "surface": surface,
             "distortions_3d": None if distortions_3d is None else vars(distortions_3d)}
     path = Path(path)
@@ -210,7 +230,8 @@ def cached_bake(dataset, path, views: int, size: int, sampler: str, seed: int, d
     from tqdm import tqdm
 
     with tqdm(total=views * len(dataset), desc=f"baking {path.name}", unit="view", dynamic_ncols=True) as bar:
-        buffers = bake(dataset, views, size, sampler, seed, distortions_3d, progress=bar.update, surface=surface)
+        buffers = bake(dataset, views, size, sampler, seed, distortions_3d, progress=bar.update, surface=surface,
+                       workers=workers)
     buffers.save(path, meta)
     return buffers
 

@@ -89,6 +89,11 @@ class TrainSettings:
     amp: bool = True  # bfloat16 autocast on CUDA
 
 
+# Banks of at least this many views are baked by a pool of processes (one per free core): a spawned
+# worker's start-up (it imports torch, seconds) costs more than a small bank takes in this process.
+BAKE_IN_PROCESSES_FROM = 4096
+
+
 @dataclass
 class TrainConfig:
     name: str = "default"
@@ -306,15 +311,20 @@ class Trainer:
         distort = Distortions3D(cfg.distortion_3d, p_rotation=0.0 if surface else 0.25) if cfg.distortion_3d > 0 else None
         if self.world.distributed and not self.world.main:
             torch.distributed.barrier()  # the main process bakes both banks; the others then read its files
+        from ..threads import policy_threads
+
+        cores = policy_threads()  # a large bank is baked by one-thread processes on the cores other jobs leave free
+        workers = cores if cores > 1 and cfg.gbuffer_views * len(self.train_set) >= BAKE_IN_PROCESSES_FROM else 0
         train = cached_bake(self.train_set.dataset, folder / bake_key("train", cfg.texture_kinds, cfg.gbuffer_views, size,
                                                                      cfg.sampler, self.config.seed, cfg.distortion_3d,
                                                                      surface),
-                            cfg.gbuffer_views, size, cfg.sampler, self.config.seed, distort, self.log, surface)
+                            cfg.gbuffer_views, size, cfg.sampler, self.config.seed, distort, self.log, surface, workers)
         val_views = min(len(self.val_set), cfg.val_meshes)
         val_set = torch.utils.data.Subset(self.val_set, range(val_views))
         test = cached_bake(val_set, folder / bake_key("test", cfg.texture_kinds, 1, size, cfg.sampler,
                                                       self.config.seed + 1_000_003, 0.0, surface),
-                           1, size, cfg.sampler, self.config.seed + 1_000_003, None, self.log, surface)
+                           1, size, cfg.sampler, self.config.seed + 1_000_003, None, self.log, surface,
+                           workers if val_views >= BAKE_IN_PROCESSES_FROM else 0)
         if self.world.distributed and self.world.main:
             torch.distributed.barrier()
         as_bytes = lambda dataset, count: torch.stack([self._texture_bytes(dataset, i) for i in range(count)])  # noqa: E731
