@@ -8,7 +8,7 @@ around the timed block. Prints training pictures per second for each path, their
 one-off time and the machine's load.
 
 Run: python benchmarks/train_paths.py --data data [--device cuda] [--steps 20] [--batch 64]
-     [--config configs/blind8_gbuffer.yaml] [--meshes 64]
+     [--config configs/blind8_gbuffer.yaml] [--meshes 64] [--large 512] [--channels-last]
 The last line is machine-readable:
     train_render_pics_per_s=<float> train_gbuffer_pics_per_s=<float> ratio=<float>
 """
@@ -63,6 +63,8 @@ def main() -> int:
     parser.add_argument("--large", type=int, nargs="*", default=[],
                         help="also time the rendering pass at these render sizes (the object then framed from a "
                              "large render, as the G-buffer views are)")
+    parser.add_argument("--channels-last", action="store_true",
+                        help="also time the G-buffer path with the networks in NHWC memory order (train.channels_last)")
     args = parser.parse_args()
     from meshseal.training.train import TrainConfig
 
@@ -94,6 +96,10 @@ def main() -> int:
         config.train.gbuffer = "auto"
         gbuffer, built = measure(config, args.device, args.steps, args.warmup, out / "gbuffer")
         print(f"cached G-buffers: {gbuffer:.1f} pictures/s (trainer built in {built:.1f} s, bake included if not cached)")
+        if args.channels_last:
+            config.train.channels_last = True
+            nhwc, _ = measure(config, args.device, args.steps, args.warmup, out / "gbuffer_nhwc")
+            print(f"cached G-buffers, channels_last: {nhwc:.1f} pictures/s ({nhwc / gbuffer:.2f} x the NCHW figure)")
     finally:
         shutil.rmtree(out, ignore_errors=True)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")

@@ -169,6 +169,20 @@ def test_supersampled_views_are_baked_larger_and_box_filtered_to_the_frame(datas
         Trainer(_texture_config(dataset, gbuffer_supersample=0), tmp_path / "none", log=quiet)
 
 
+def test_channels_last_networks_train_to_the_same_numbers(dataset, tmp_path):
+    """train.channels_last changes the weights' memory order, not what a step computes."""
+    quiet = lambda *_: None  # noqa: E731
+    runs = {}
+    for nhwc in (False, True):
+        trainer = Trainer(_texture_config(dataset, steps=2, channels_last=nhwc), tmp_path / str(nhwc), log=quiet)
+        conv = next(m for m in trainer.model.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size == (3, 3))
+        assert conv.weight.is_contiguous(memory_format=torch.channels_last) == nhwc
+        trainer.fit()
+        runs[nhwc] = load_file(str(tmp_path / str(nhwc) / "model.safetensors"))
+    for key, value in runs[False].items():
+        assert torch.allclose(value.float(), runs[True][key].float(), atol=1e-4), key
+
+
 def test_vertex_marks_train_on_baked_views_too_and_informed_models_are_refused(dataset, tmp_path):
     """A vertex + texture mark trains on baked views that keep each pixel's face and barycentrics (the
     marked normals and uvs re-shade them); `gbuffer: off` renders every step; an informed decoder reads

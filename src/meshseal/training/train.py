@@ -87,6 +87,7 @@ class TrainSettings:
     gbuffer_supersample: int = 1  # views baked at this many times the frame size, each picture box-filtered down to it
     log_every: int = 0  # steps between log rows (one host round trip each); 0: 1 on the CPU, 50 on a GPU
     amp: bool = True  # bfloat16 autocast on CUDA
+    channels_last: bool = False  # the networks' weights (and so their activations) in NHWC memory order
 
 
 # Banks of at least this many views are baked by a pool of processes (one per free core): a spawned
@@ -236,6 +237,8 @@ class Trainer:
         if len(self.train_set) == 0:
             raise MeshsealError(f"{config.data}: the train split is empty")
         self.model = WatermarkModel(config.model).to(self.device)
+        if config.train.channels_last:  # cuDNN's tensor-core convolutions work in NHWC: no transpose around each
+            self.model.to(memory_format=torch.channels_last)
         if self.device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # fixed picture sizes: cuDNN may time its convolution algorithms once
         from ..methods import method_for
