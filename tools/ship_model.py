@@ -200,13 +200,17 @@ def main() -> int:
                   f"90th percentile {pose['p90']} px, {registered['seconds_per_picture']:.1f} s per picture."
                   + (" This row too marks each mesh as `meshseal embed` does." if shipped is not None else "")]
     if surface:
+        how = ("the bits from its columns" if method.name == "surface" else
+               f"framed to {config['frame_size']}^2 and read by the learned decoder")
         lines += ["", "Each picture is read as `meshseal detect --model NAME PICTURE` reads it (no `--mesh`, no metadata): "
-                  "the object found from the plain background, the bits from its columns. A blind model reports raw "
+                  f"the object found from the plain background, {how}. A blind model reports raw "
                   "bits; `--expect TEXT` / `--expect-id N` (models with a payload schema) test one known message: the "
                   "binomial p-value of the bits that agree with it, detected only if the error-correcting code also "
-                  "reads that message. The mark is visible where the texture is flat (chroma bands that follow the "
-                  "object's x: docs/preview_blind_bunny.png): it buys blind reading at the paper's PSNR, and the "
-                  "informed `default` stays the invisible choice when the original mesh is at hand."]
+                  "reads that message."]
+        if method.name == "surface":
+            lines[-1] += (" The mark is visible where the texture is flat (chroma bands that follow the object's x: "
+                          "docs/preview_blind_bunny.png): it buys blind reading at the paper's PSNR, and the informed "
+                          "`default` stays the invisible choice when the original mesh is at hand.")
     lines += ["", "Object PSNR, SSIM and FLIP compare the marked and original mesh rendered from the same view and light "
               "over the object's pixels (8-bit values); frame PSNR is over the whole frame, as the seed paper reports "
               "(the background inflates it). Seed paper (Table 4/5): 0.897 bit accuracy at 8 bits and 0.636 at 32 bits "
