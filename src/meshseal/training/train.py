@@ -92,7 +92,7 @@ class TrainSettings:
 
 # Banks of at least this many views are baked by a pool of processes (one per free core): a spawned
 # worker's start-up (it imports torch, seconds) costs more than a small bank takes in this process.
-BAKE_IN_PROCESSES_FROM = 4096
+BAKE_IN_PROCESSES_FROM = 2048
 
 
 @dataclass
