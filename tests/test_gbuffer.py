@@ -1,8 +1,6 @@
 """Cached G-buffers (meshseal.training.gbuffer): a baked view composited with a texture is the render."""
 
 import math
-import shutil
-from pathlib import Path
 
 import pytest
 import torch
@@ -12,8 +10,6 @@ from meshseal.reading.framing import BOX_MARGIN
 from meshseal.render.views import sample_views
 from meshseal.render import MeshBatch, MeshRenderer
 from meshseal.training.gbuffer import GBuffers, bake_views, composite
-
-FIXTURES = Path(__file__).parent / "fixtures"
 
 
 def _spheres(n: int) -> dict:
@@ -108,23 +104,34 @@ def test_a_vertex_mark_reshades_baked_views_as_the_renderer_does():
     assert normals.grad.abs().sum() > 0 and uvs.grad.abs().sum() > 0
 
 
-def test_a_bank_baked_in_processes_is_the_bank_baked_in_one(tmp_path):
-    """Each chunk draws from its own generator: a worker process baking the chunks in turn bakes the views this
-    process bakes (a pool of one: each worker's start-up is a second of the test tier)."""
-    from meshseal.data.build import build
-    from meshseal.data.dataset import MeshDataset
+@pytest.fixture(scope="module")
+def two_meshes():
+    """Two dataset items (spheres of two sizes), as a list: what `bake` reads of a dataset."""
+    spheres = _spheres(2)
+    return [{key: value[i] for key, value in spheres.items()} for i in range(2)]
+
+
+def test_each_chunk_of_a_bank_draws_its_views_alone(two_meshes):
+    """A chunk's cameras, lights and distortions come from its own generator: baked in any order, or alone,
+    the chunks make the same bank (what lets a pool of processes bake it)."""
+    from meshseal.training.gbuffer import _bake_chunk, bake
+
+    bank = bake(two_meshes, 2, 24, "seed", 5, batch_size=1)
+    chunks = [(view, index) for view in range(2) for index in range(len(two_meshes))]
+    parts = {chunk: _bake_chunk(two_meshes, chunk[0], [chunk[1]], 24, "seed", 5, None, False) for chunk in reversed(chunks)}
+    assert torch.equal(bank.uv, torch.cat([parts[chunk].uv for chunk in chunks]))
+    assert torch.equal(bank.shade, torch.cat([parts[chunk].shade for chunk in chunks]))
+    assert torch.equal(bank.item, torch.tensor([index for _, index in chunks]))
+    assert not torch.equal(parts[(0, 0)].uv, parts[(1, 0)].uv)  # the two views of a mesh differ
+    assert bool(bank.mask.any())
+
+
+def test_a_bank_baked_in_processes_is_the_bank_baked_in_one(two_meshes):
+    """A worker process baking the chunks bakes the views this process bakes (a pool of one: each spawned
+    worker imports torch, seconds of the test tier)."""
     from meshseal.training.gbuffer import bake
 
-    source = tmp_path / "src"
-    source.mkdir()
-    for name in ("bunny.glb", "suzanne.glb"):
-        shutil.copy(FIXTURES / name, source / name)
-    build(tmp_path / "data", sources=[], texture_sources=[], from_folder=source, textures_dir=FIXTURES / "textures",
-          seed=0, n_faces=300, texture_size=32, workers=1, license_="CC0-1.0", test_fraction=0.0)
-    dataset = MeshDataset(tmp_path / "data", "train", seed=0)
-    assert len(dataset) >= 2
-    alone = bake(dataset, 2, 24, "seed", 5, batch_size=1)
-    pooled = bake(dataset, 2, 24, "seed", 5, batch_size=1, workers=1)
+    alone = bake(two_meshes, 2, 24, "seed", 5, batch_size=1)
+    pooled = bake(two_meshes, 2, 24, "seed", 5, batch_size=1, workers=1)
     assert torch.equal(alone.item, pooled.item) and torch.equal(alone.mask, pooled.mask)
     assert torch.equal(alone.uv, pooled.uv) and torch.equal(alone.shade, pooled.shade)
-    assert len(set(alone.item.tolist())) == len(dataset) and bool(alone.mask.any())

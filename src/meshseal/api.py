@@ -83,7 +83,7 @@ class Watermarker:
         self.method = method_for(self.model)
         self.reader = Reader(self.method)
         self._own_of: tuple | None = None  # (prepared original, key seed, own_mark_pvalue) for `why_not`
-        self._previous: "Watermarker | None" = None  # PREVIOUS_DEFAULT, loaded when `why_not` first needs it
+        self._previous: Watermarker | None = None  # PREVIOUS_DEFAULT, loaded when `why_not` first needs it
 
     @property
     def n_bits(self) -> int:
