@@ -6,7 +6,8 @@ its textures re-saved as JPEG 90 (Pillow, 4:2:0), halved (bicubic), block-compre
 (`etcpak` to encode, `texture2ddecoder` to decode), the mesh saved as OBJ and converted to GLB through
 trimesh and read back (`obj_glb`), or decimated to half its faces keeping its UVs (`mesh.simplify`).
 The result is rendered by our renderer from one seeded view (256^2, 8-bit) and read against the
-unmarked original with the camera known. Reports detected / exact message at FPR 1e-6 per step, by kind
+unmarked original with the camera known. Reports detected / exact message / named at FPR 1e-6 per step
+(named: the owner's test of the message it embedded, `detect --expect-id`, on the same reading), by kind
 of asset (fixtures with their own textures; test meshes, whose textures the dataset stores at 128^2).
 
     pip install etcpak texture2ddecoder
@@ -138,19 +139,21 @@ def main() -> None:
             original = watermarker.original(mesh)
             cameras, lights = sample_views(1, "seed", generator)
             for what in STEPS:
-                tally = counts.setdefault((kind, what), [0, 0, 0])
+                tally = counts.setdefault((kind, what), [0, 0, 0, 0])
                 tally[0] += 1
                 try:
                     picture = _picture(step(marked, what), cameras, lights)
-                    result = watermarker.decide([watermarker.read(picture, original, camera=cameras)])
+                    reading = watermarker.read(picture, original, camera=cameras)
                 except meshseal.MeshsealError:
                     continue
+                result = watermarker.decide([reading])
                 tally[1] += bool(result.detected)
                 tally[2] += result.message == message
+                tally[3] += bool(watermarker.decide([reading], expect=message).detected)
         for kind in ("fixture", "test mesh"):
             if (kind, "none") in counts:
-                cells = " | ".join(f"{counts[(kind, s)][1] / counts[(kind, s)][0]:.2f} / "
-                                   f"{counts[(kind, s)][2] / counts[(kind, s)][0]:.2f}" for s in STEPS)
+                cells = " | ".join(" / ".join(f"{counts[(kind, s)][i] / counts[(kind, s)][0]:.2f}" for i in (1, 2, 3))
+                                   for s in STEPS)
                 print(f"| {name} | {counts[(kind, 'none')][0]} {kind}s | {cells} |", flush=True)
 
 
