@@ -154,7 +154,7 @@ def main() -> None:
             if (kind, "none") in counts:
                 cells = " | ".join(" / ".join(f"{counts[(kind, s)][i] / counts[(kind, s)][0]:.2f}" for i in (1, 2, 3))
                                    for s in STEPS)
-                print(f"| {name} | {counts[(kind, 'none')][0]} {kind}s | {cells} |", flush=True)
+                print(f"| {name} | {counts[(kind, 'none')][0]} {'test meshes' if kind == 'test mesh' else kind + 's'} | {cells} |", flush=True)
 
 
 if __name__ == "__main__":
