@@ -164,20 +164,12 @@ def bake(dataset, views: int, size: int, sampler: str = "seed", seed: int = 0, d
     (0: this process) bake the same bank as one process does."""
     chunks = [(dataset, view, list(range(start, min(len(dataset), start + batch_size))), size, sampler, seed,
                distortions_3d, surface) for view in range(views) for start in range(0, len(dataset), batch_size)]
-    if workers > 0 and len(chunks) > 1:
-        from ..data.build import _executor
+    from ..data.build import _executor
 
-        with _executor(min(workers, len(chunks))) as pool:
-            futures = [pool.submit(_bake_chunk, *chunk) for chunk in chunks]
-            parts = []
-            for future, chunk in zip(futures, chunks):
-                parts.append(future.result())
-                if progress is not None:
-                    progress(len(chunk[2]))
-    else:
-        parts = []
-        for chunk in chunks:
-            parts.append(_bake_chunk(*chunk))
+    parts = []
+    with _executor(min(workers, len(chunks)) if len(chunks) > 1 else 0) as pool:  # 0: this process, in turn
+        for future, chunk in zip([pool.submit(_bake_chunk, *chunk) for chunk in chunks], chunks):
+            parts.append(future.result())
             if progress is not None:
                 progress(len(chunk[2]))
     found = None
