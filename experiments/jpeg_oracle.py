@@ -80,6 +80,13 @@ def main() -> None:
         cells = " | ".join(f"{m['attacks'][a]['detected']:.2f} / {m['attacks'][a]['exact']:.2f} / "
                            f"{m['attacks'][a]['bit_acc']:.3f}" for a in attacks)
         print(f"| {reading} | {cells} |")
+    print("\nBy kind of picture, detected (`evaluate.picture_kinds`)\n")
+    print("| reading | kind | pictures | none | " + " | ".join(attacks) + " |")
+    print("|---|---|---|---|" + "---|" * len(attacks))
+    for reading, m in rows.items():
+        for kind, entry in m.get("by_kind", {}).items():
+            cells = " | ".join(f"{entry[a]:.2f}" for a in attacks)
+            print(f"| {reading} | {kind} | {entry['pictures']} | {entry['detected_known_camera']:.2f} | {cells} |")
 
 
 if __name__ == "__main__":

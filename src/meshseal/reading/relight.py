@@ -18,7 +18,7 @@ from ..render import (
     relight_fragments,
     unrender,
 )
-from ..render.lighting import K_AMBIENT
+from ..render.lighting import K_AMBIENT, K_DIFFUSE
 
 
 @dataclass
@@ -83,9 +83,140 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
                     surface=surface)  # antialiased albedo
     albedo = pixels_at(flat.image, fragments)
     fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
-    _, ambient, lights = relight_fragments(mesh, fragments, cameras, pixels_at(image, fragments), albedo, fit_on,
-                                           predict=False)
+    seen = pixels_at(image, fragments)
+    _, ambient, lights = relight_fragments(mesh, fragments, cameras, seen, albedo, fit_on, predict=False)
+    if renderer.blend == "splat":
+        inside = pixels_at(flat.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
+        ambient, lights = splat_polished_light(fragments, surface, cameras, seen, albedo, inside, ambient, lights,
+                                               (n_images, height, width), renderer.sigma, fit_on)
     return fragments, _with_ambient_per_image(mesh, ambient), lights, albedo, surface
+
+
+POLISH_ITERATIONS = 6  # Levenberg-Marquardt steps of the polish at most
+POLISH_PIXELS = 2048  # the polish fits on an even subsample of at most about this many interior pixels
+POLISH_TOLERANCE = 1e-4  # it stops once a step moves the light less than this times its distance
+
+
+def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torch.Tensor, albedo: torch.Tensor,
+                         inside: torch.Tensor, ambient: torch.Tensor, lights, shape: tuple[int, int, int],
+                         sigma: float, fit_on: torch.Tensor | None = None):
+    """The point light of `fit_point_light` polished for a picture our splatting renderer made.
+
+    `fit_point_light` models each pixel as the albedo at it (antialiased: the splatted albedo render)
+    times one Lambert term at the pixel's own surface point. A splatted interior pixel is the 3x3
+    Gaussian (`sigma`) mean of its neighbours' lit colours instead, and where the normal changes from
+    pixel to pixel (leaves, fine relief) the product of means is not the mean of products: the fit then
+    moves the light and trades diffuse for ambient light, and the relit original misses the picture by
+    more than the mark (the albedo, antialiased where the picture is point-sampled, misleads it the same
+    way). Here, on an even subsample of the interior pixels (`inside` (P,), coverage 1, none clipped at
+    white; within `fit_on` where given), the sampling that explains them best at the first fit's light
+    is chosen (the splat's 3x3 Gaussian, or point samples), and under its exact model (ambient x the
+    sampled albedo + diffuse x the sampled product of albedo and Lambert term, the two strengths per
+    channel in closed form) the light's position is refined by Levenberg-Marquardt; the result is kept
+    only where it explains those pixels better than the point model did (a picture sampled otherwise,
+    by another engine, can keep its first fit).
+    `fragments`/`surface` (`MeshRenderer.surface`: world position, normal, point-sampled albedo), `seen`
+    and `albedo` (P, 3) at the fragments; `shape` (B, H, W) of the pictures. Looks at the picture and the
+    original only. Returns ambient (B, 3) and PointLights, as `fit_point_light` does."""
+    import torch.nn.functional as F
+
+    from ..models.spread import within_reach
+    from ..render.lighting import attenuation
+    from ..render.splatter import _kernels
+
+    world, normal, lookup, _ = surface
+    usable = inside & (seen.amax(1) < 254.5 / 255)
+    if fit_on is not None:
+        usable = usable & fit_on
+    local, (_, rows, columns), _ = within_reach(fragments.pixel, shape, 1)
+    gaussian = _kernels(sigma, seen.dtype, seen.device)[0].reshape(9)  # the splat's 3x3 Gaussian
+    samplings = (gaussian, torch.zeros_like(gaussian).index_fill_(0, torch.tensor([4], device=gaussian.device), 1.0))
+    offsets = torch.tensor([dy * columns + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=local.device)
+    unit = F.normalize(normal, dim=-1, eps=1e-12)
+    eye = cameras.eye.to(world).index_select(0, fragments.batch)
+    unit = torch.where((unit * (eye - world)).sum(-1, keepdim=True) < 0, -unit, unit)
+    ambient, position, intensity = ambient.clone(), lights.position.clone(), lights.intensity.clone()
+    for index in range(shape[0]):
+        chosen = torch.nonzero(fragments.batch == index).squeeze(1)
+        used = torch.nonzero(usable.index_select(0, chosen)).squeeze(1)
+        if len(used) < 16:
+            continue
+        used = used[:: max(1, len(used) // POLISH_PIXELS)].contiguous()  # an even subsample
+        # each used pixel's 3x3 neighbours (all covered: the pixel's coverage is whole), as fragments
+        at = local.index_select(0, chosen) - index * rows * columns  # within this picture's window
+        slot = torch.full((rows * columns,), -1, dtype=torch.long, device=at.device)
+        slot.index_copy_(0, at, torch.arange(len(at), device=at.device))
+        around = slot[(at.index_select(0, used)[:, None] + offsets).clamp(0, rows * columns - 1)]  # (U, 9)
+        if bool((around < 0).any()):  # not whole after all (a pixel at the window's edge): leave it out
+            keep = (around >= 0).all(1)
+            used, around = used[keep], around[keep]
+            if len(used) < 16:
+                continue
+        needed, around = torch.unique(around, return_inverse=True)
+        picked = chosen.index_select(0, needed)
+        p, n, u = world.index_select(0, picked), unit.index_select(0, picked), lookup.index_select(0, picked)
+        y = seen.index_select(0, chosen[used])  # (U, 3)
+        centre = torch.searchsorted(needed, used)  # each used pixel's own fragment among the needed
+        a_term = albedo.index_select(0, chosen[used])  # the point model's: the antialiased albedo
+
+        def lambert(candidates: torch.Tensor) -> torch.Tensor:  # (K, 3) -> (N, K) at the needed fragments
+            to_light = candidates[None] - p[:, None]
+            distance = to_light.norm(dim=-1).clamp_min(1e-12)
+            return ((n[:, None] * to_light).sum(-1) / distance).clamp_min(0.0) / attenuation(distance)
+
+        def fit(diffuse_term: torch.Tensor):  # (U, 3, K) -> residuals (U, 3, K), a (3, K), d (3, K)
+            a_ = a_term[:, :, None]
+            suu, suy = (a_ * a_).sum(0), (a_ * y[:, :, None]).sum(0)
+            suv, svv, svy = (a_ * diffuse_term).sum(0), (diffuse_term ** 2).sum(0), (diffuse_term * y[:, :, None]).sum(0)
+            det = (suu * svv - suv * suv).clamp_min(1e-9)
+            a = ((svv * suy - suv * svy) / det).clamp_min(0.0)
+            d = ((suu * svy - suv * suy) / det).clamp_min(0.0)
+            return y[:, :, None] - a * a_ - d * diffuse_term, a, d
+
+        def sampled(candidates: torch.Tensor):  # the exact model's diffuse term at the used pixels (U, 3, K)
+            lit = u[:, :, None] * lambert(candidates)[:, None, :]  # (N, 3, K)
+            return torch.einsum("o,uocK->ucK", weights, lit[around])
+
+        start = position[index, 0]
+        point = float((fit(a_term[:, :, None] * lambert(start[None])[centre][:, None, :])[0] ** 2).sum())
+        # the sampling that explains these pixels best at the first fit's light: splatted, or point samples
+        costs = []
+        for weights in samplings:
+            a_term = torch.einsum("o,uoc->uc", weights, u[around])
+            costs.append(float((fit(sampled(start[None]))[0] ** 2).sum()))
+        weights = samplings[min(range(len(samplings)), key=costs.__getitem__)]
+        a_term = torch.einsum("o,uoc->uc", weights, u[around])
+        # Levenberg-Marquardt on the light's position, the strengths projected out (closed form at
+        # each position), the Jacobian by forward differences: one batch of four positions a step.
+        light, damping, best = start, 1e-3, None
+        for _ in range(POLISH_ITERATIONS + 1):
+            h = 1e-3 * float(light.norm())
+            residuals, a, d = fit(sampled(torch.cat([light[None], light[None] + h * torch.eye(3).to(light)])))
+            cost = float((residuals[..., 0] ** 2).sum())
+            if best is not None and cost >= best[0]:  # the step did not help: back, and damp more
+                damping *= 10.0
+                light = best[3] - best[4] / (1.0 + damping)  # a shorter step along the same direction
+                if float(best[4].norm()) / (1.0 + damping) < POLISH_TOLERANCE * float(light.norm()):
+                    break
+                continue
+            best_jacobian = ((residuals[..., 1:] - residuals[..., :1]) / h).reshape(-1, 3)
+            best = (cost, a[:, 0], d[:, 0], light, None)
+            normal_matrix = best_jacobian.T @ best_jacobian
+            gradient = best_jacobian.T @ residuals[..., 0].reshape(-1)
+            diagonal = normal_matrix.diagonal()
+            if float(diagonal.max()) <= 0.0:  # the light's position changes nothing here (no lit pixel)
+                break
+            scale = torch.diag(diagonal.clamp_min(1e-9 * float(diagonal.max())))
+            step = torch.linalg.solve(normal_matrix + damping * scale, gradient)
+            best = best[:4] + (step,)
+            damping = max(damping / 10.0, 1e-6)
+            light = best[3] - step
+            if float(step.norm()) < POLISH_TOLERANCE * float(best[3].norm()):
+                break
+        if best is not None and best[0] < point:
+            ambient[index] = best[1] / K_AMBIENT
+            position[index, 0], intensity[index, 0] = best[3], best[2] / K_DIFFUSE
+    return ambient, type(lights)(position, intensity)
 
 
 def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all") -> RelitResidual:
