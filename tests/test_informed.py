@@ -62,13 +62,14 @@ def test_point_light_fit_explains_our_renders():
 
 
 @pytest.mark.parametrize("blend", ["splat", "hard"])
-@pytest.mark.parametrize("name", ["bunny.glb", "sh3d_crate/crate.obj"])
+@pytest.mark.parametrize("name", ["bunny.glb", "sh3d_crate/crate.obj", "teapot/teapot.obj"])
 def test_the_polished_light_is_the_light_that_rendered_the_picture(monkeypatch, name, blend):
     """The light fit of every reading (`relight.fitted_light`) finds the light our renderer used, splatted
     or point-sampled: the point model alone (the polish switched off) is tenths of a unit off and trades
     diffuse for ambient light; the polish under the picture's own sampling recovers the position within
-    a hundredth and the strengths within a percent, and the relit original then predicts the picture to
-    its 8-bit rounding."""
+    two hundredths and the strengths within a percent (the teapot's red bricks clip at white under its
+    light: the pixels beside a clipped one are left out), and the relit original then predicts the
+    picture to its 8-bit rounding."""
     import meshseal.reading.relight as relight
 
     mesh = MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / name))))
@@ -78,7 +79,7 @@ def test_the_polished_light_is_the_light_that_rendered_the_picture(monkeypatch, 
     _, polished, _ = relight.fitted_light(mesh, picture, cameras)
     monkeypatch.setattr(relight, "POLISH_ITERATIONS", -1)
     relit, point, _ = relight.fitted_light(mesh, picture, cameras)
-    assert off(point) > 0.1 and off(polished) < 0.01
+    assert off(point) > 0.1 and off(polished) < 0.02
     assert float((polished.intensity - 1.0).abs().max()) < 0.01
     monkeypatch.undo()
     if blend == "splat":  # the relit original is our splatted render: it predicts the picture itself

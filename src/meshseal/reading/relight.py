@@ -93,7 +93,8 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
 
 
 POLISH_ITERATIONS = 6  # Levenberg-Marquardt steps of the polish at most
-POLISH_PIXELS = 2048  # the polish fits on an even subsample of at most about this many interior pixels
+POLISH_PIXELS = 1024  # the polish fits on an even subsample of at most about this many interior pixels
+NEAR_WHITE = 250.0 / 255  # a pixel with a neighbour this bright in any channel is left out of the polish
 POLISH_TOLERANCE = 1e-4  # it stops once a step moves the light less than this times its distance
 
 
@@ -108,8 +109,8 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
     pixel to pixel (leaves, fine relief) the product of means is not the mean of products: the fit then
     moves the light and trades diffuse for ambient light, and the relit original misses the picture by
     more than the mark (the albedo, antialiased where the picture is point-sampled, misleads it the same
-    way). Here, on an even subsample of the interior pixels (`inside` (P,), coverage 1, none clipped at
-    white; within `fit_on` where given), the sampling that explains them best at the first fit's light
+    way). Here, on an even subsample of the interior pixels (`inside` (P,), coverage 1, none near white
+    around; within `fit_on` where given), the sampling that explains them best at the first fit's light
     is chosen (the splat's 3x3 Gaussian, or point samples), and under its exact model (ambient x the
     sampled albedo + diffuse x the sampled product of albedo and Lambert term, the two strengths per
     channel in closed form) the light's position is refined by Levenberg-Marquardt; the result is kept
@@ -125,7 +126,7 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
     from ..render.splatter import _kernels
 
     world, normal, lookup, _ = surface
-    usable = inside & (seen.amax(1) < 254.5 / 255)
+    usable = inside
     if fit_on is not None:
         usable = usable & fit_on
     local, (_, rows, columns), _ = within_reach(fragments.pixel, shape, 1)
@@ -147,11 +148,22 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
         slot = torch.full((rows * columns,), -1, dtype=torch.long, device=at.device)
         slot.index_copy_(0, at, torch.arange(len(at), device=at.device))
         around = slot[(at.index_select(0, used)[:, None] + offsets).clamp(0, rows * columns - 1)]  # (U, 9)
-        if bool((around < 0).any()):  # not whole after all (a pixel at the window's edge): leave it out
-            keep = (around >= 0).all(1)
-            used, around = used[keep], around[keep]
-            if len(used) < 16:
-                continue
+        # left out: a pixel not whole after all (at the window's edge), or with a neighbour that is near
+        # white in the picture or under the first fit's light (the renderer clamps each lit colour before
+        # splatting, which the model does not)
+        bright = seen.index_select(0, chosen).amax(1) >= NEAR_WHITE
+        first = position[index, 0][None]
+        p_all, n_all = world.index_select(0, chosen), unit.index_select(0, chosen)
+        to_light = first - p_all
+        distance = to_light.norm(dim=1).clamp_min(1e-12)
+        lambert_first = ((n_all * to_light).sum(1) / distance).clamp_min(0.0) / attenuation(distance)
+        lit_first = lookup.index_select(0, chosen) * (K_AMBIENT * ambient[index] + K_DIFFUSE * intensity[index, 0]
+                                                      * lambert_first[:, None])
+        bright = bright | (lit_first.amax(1) >= NEAR_WHITE)
+        keep = (around >= 0).all(1) & ~bright[around.clamp_min(0)].any(1)
+        used, around = used[keep], around[keep]
+        if len(used) < 16:
+            continue
         needed, around = torch.unique(around, return_inverse=True)
         picked = chosen.index_select(0, needed)
         p, n, u = world.index_select(0, picked), unit.index_select(0, picked), lookup.index_select(0, picked)
@@ -159,10 +171,12 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
         centre = torch.searchsorted(needed, used)  # each used pixel's own fragment among the needed
         a_term = albedo.index_select(0, chosen[used])  # the point model's: the antialiased albedo
 
+        p_squared, n_dot_p = (p * p).sum(1, keepdim=True), (n * p).sum(1, keepdim=True)
+
         def lambert(candidates: torch.Tensor) -> torch.Tensor:  # (K, 3) -> (N, K) at the needed fragments
-            to_light = candidates[None] - p[:, None]
-            distance = to_light.norm(dim=-1).clamp_min(1e-12)
-            return ((n[:, None] * to_light).sum(-1) / distance).clamp_min(0.0) / attenuation(distance)
+            # |c - p| and n.(c - p) as matrix products, as `fit_point_light` scores its candidates
+            distance = (p_squared - 2.0 * p @ candidates.T + (candidates * candidates).sum(1)).clamp_min(1e-24).sqrt()
+            return ((n @ candidates.T - n_dot_p) / distance).clamp_min(0.0) / attenuation(distance)
 
         def fit(diffuse_term: torch.Tensor):  # (U, 3, K) -> residuals (U, 3, K), a (3, K), d (3, K)
             a_ = a_term[:, :, None]
