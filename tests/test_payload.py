@@ -386,3 +386,26 @@ def test_the_codeword_test_is_the_parity_check_matrix_s():
         words += [rng.integers(0, 2, code.n).astype(np.uint8) for _ in range(50)]
         for word in words:
             assert _is_codeword(word) == (not (check @ word.astype(np.int64) % 2).any())
+
+
+@pytest.mark.parametrize("n_bits", [64, 32])
+def test_the_table_decoder_answers_as_galois_does(n_bits):
+    """`_bm_decode` (syndromes, Berlekamp-Massey and Chien search on log tables) returns galois' codeword
+    and error count, or says it cannot decode where galois does, on codewords with 0 to t + 3 flips and on
+    random words."""
+    from meshseal.payload import _bm_decode, _code, _schema
+
+    code, schema = _code(n_bits), _schema(n_bits)
+    rng = np.random.default_rng(7)
+    for trial in range(300):
+        if trial % 5 == 4:
+            word = rng.integers(0, 2, code.n).astype(np.uint8)
+        else:
+            word = np.asarray(code.encode(rng.integers(0, 2, code.k).astype(np.uint8)), dtype=np.uint8)
+            word[rng.choice(code.n, trial % (code.t + 4), replace=False)] ^= 1
+        expected, expected_errors = code.decode(word, output="codeword", errors=True)
+        got, errors = _bm_decode(word, schema)
+        if expected_errors < 0:
+            assert errors < 0
+        else:
+            assert errors == expected_errors and np.array_equal(got, np.asarray(expected, dtype=np.uint8))

@@ -9,9 +9,10 @@ Layout for a model of N raw bits (see docs/payload.md):
     N = 64: BCH(63, 36), t = 5, extended distance 12 -> 32 payload bits
     N = 32: BCH(31, 16), t = 3, extended distance 8  -> 12 payload bits (legacy learned model)
 
-The BCH code is galois's, imported on first use, in pure-Python field arithmetic (its numba JIT would
-cost every process a compile) and with the pinned polynomials taken as given, which skips their
-verification. bchlib (C) only takes whole data bytes, so at t = 5 in GF(2^6) it would hold 32 data
+The BCH code is galois's, imported on first use to encode, in pure-Python field arithmetic (its numba
+JIT would cost every process a compile) and with the pinned polynomials taken as given, which skips their
+verification; decoding runs on GF(2^m) log tables (`_bm_decode`), as galois decodes but without its
+per-word cost. bchlib (C) only takes whole data bytes, so at t = 5 in GF(2^6) it would hold 32 data
 bits instead of 36 and the 4-bit header would eat 4 payload bits. Timings: docs/payload.md.
 
 The key (None = the public default key) derives, through SHAKE-256, the position permutation, the
@@ -229,6 +230,79 @@ def _is_codeword(word: np.ndarray) -> bool:
     return remainder == 0
 
 
+@lru_cache(maxsize=None)
+def _field_tables(m: int, primitive_poly: str) -> tuple[list[int], list[int]]:
+    """Antilog (twice over, so sums of two logs need no reduction) and log tables of GF(2^m) built on
+    `primitive_poly` ("x^6 + x + 1"): alpha^i and log_alpha(a)."""
+    poly = sum(1 << (int(term[2:]) if term.startswith("x^") else 1 if term == "x" else 0)
+               for term in primitive_poly.replace(" ", "").split("+"))
+    size = (1 << m) - 1
+    antilog, log = [0] * (2 * size), [0] * (size + 1)
+    value = 1
+    for power in range(size):
+        antilog[power] = antilog[power + size] = value
+        log[value] = power
+        value <<= 1
+        if value >> m:
+            value ^= poly
+    return antilog, log
+
+
+def _bm_decode(word: np.ndarray, schema: _Schema) -> tuple[np.ndarray, int]:
+    """The narrow-sense BCH(2^m - 1, k) codeword nearest to hard bits `word` (n,) (highest degree first,
+    as galois orders them) and the number of bits it corrected, or (word, -1) where more than t errors
+    are seen: syndromes, Berlekamp-Massey, Chien search, on log tables. galois' decoder gives the same
+    answers (tests/test_payload.py checks it on random words) but in pure-Python field arithmetic takes
+    milliseconds a word, as long as a whole camera-known reading's texture stage."""
+    antilog, log = _field_tables(schema.m, schema.primitive_poly)
+    size, t = (1 << schema.m) - 1, (schema.d - 1) // 2
+    degrees = [size - 1 - index for index in np.flatnonzero(word)]
+    syndromes = []
+    for j in range(1, 2 * t + 1):
+        value = 0
+        for degree in degrees:
+            value ^= antilog[(j * degree) % size]
+        syndromes.append(value)
+    if not any(syndromes):
+        return word.astype(np.uint8), 0
+    multiply = lambda a, b: 0 if a == 0 or b == 0 else antilog[log[a] + log[b]]  # noqa: E731
+    locator, previous, length, shift, last = [1], [1], 0, 1, 1  # Berlekamp-Massey
+    for step in range(2 * t):
+        discrepancy = syndromes[step]
+        for i in range(1, length + 1):
+            if i < len(locator):
+                discrepancy ^= multiply(locator[i], syndromes[step - i])
+        if discrepancy == 0:
+            shift += 1
+            continue
+        factor = antilog[(log[discrepancy] - log[last]) % size]
+        update = locator + [0] * max(0, len(previous) + shift - len(locator))
+        for i, coefficient in enumerate(previous):
+            update[i + shift] ^= multiply(factor, coefficient)
+        if 2 * length <= step:
+            previous, length, last, shift = locator, step + 1 - length, discrepancy, 1
+        else:
+            shift += 1
+        locator = update
+    while len(locator) > 1 and locator[-1] == 0:
+        locator.pop()
+    if length > t or len(locator) - 1 != length:
+        return word.astype(np.uint8), -1
+    errors = []  # Chien search: an error at degree e where the locator vanishes at alpha^-e
+    for degree in range(size):
+        value = 0
+        for i, coefficient in enumerate(locator):
+            if coefficient:
+                value ^= antilog[(log[coefficient] - i * degree) % size]
+        if value == 0:
+            errors.append(degree)
+    if len(errors) != length:
+        return word.astype(np.uint8), -1
+    decoded = word.astype(np.uint8).copy()
+    decoded[[size - 1 - degree for degree in errors]] ^= 1
+    return decoded, length
+
+
 def _bch_decode(word: np.ndarray) -> np.ndarray | None:
     """The extended-code codeword (N,) nearest to hard bits `word` (N,), or None. A word is accepted
     when the BCH errors plus a mismatched overall parity bit are at most t, so the extended code's
@@ -236,8 +310,7 @@ def _bch_decode(word: np.ndarray) -> np.ndarray | None:
     if _is_codeword(word[:-1]):
         decoded, n_errors = word[:-1].astype(np.uint8), 0  # a codeword already: the decoder's own answer, at no cost
     else:
-        decoded, n_errors = _code(len(word)).decode(word[:-1], output="codeword", errors=True)
-        decoded = np.asarray(decoded, dtype=np.uint8)
+        decoded, n_errors = _bm_decode(word[:-1], _schema(len(word)))
     parity = np.uint8(decoded.sum() % 2)
     if n_errors < 0 or n_errors + (parity != word[-1]) > (_schema(len(word)).d - 1) // 2:
         return None
