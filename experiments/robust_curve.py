@@ -36,6 +36,11 @@ def main() -> None:
     parser.add_argument("--psnr", type=float, nargs="+", default=[40.0, 37.0, 34.0, 31.0])
     parser.add_argument("--colours", nargs="+", default=["grey", "blue-yellow"])
     parser.add_argument("--attacks", default="none,jpeg90,jpeg75,jpeg50,webp80")
+    parser.add_argument("--kind", choices=("magnified", "minified"), default=None,
+                        help="only the test meshes of this kind under configs/default.yaml's grids (of the first "
+                             "--scan): magnified textures (cells over fine_above px), minified (under coarse_below, "
+                             "with coarse_chips 32)")
+    parser.add_argument("--scan", type=int, default=284, help="test meshes to look through for --kind")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a model setting (YAML value), repeatable")
     args = parser.parse_args()
@@ -47,6 +52,9 @@ def main() -> None:
         print(f"<!-- settings: {' '.join(args.set)} -->")
     attacks = parse(args.attacks)
     dataset = MeshDataset(args.data, "test", seed=0)
+    if args.kind:
+        dataset = _of_kind(dataset, args.kind, args.scan)
+        print(f"<!-- {len(dataset)} {args.kind} meshes of the first {args.scan} -->")
     print("| mark | texture PSNR (dB) | object FLIP mean / p95 | object PSNR (dB) | "
           + " | ".join(f"{a}: detected / exact" for a in attacks) + " |")
     print("|---|---|---|---|" + "---|" * len(attacks))
@@ -61,6 +69,36 @@ def main() -> None:
             print(f"| {colour} | {psnr:g} | {m['flip_object']:.4f} / {m['flip_object_p95']:.4f} | {m['psnr_object']:.2f} | "
                   f"{cells} |", flush=True)
             print(f"<!-- {colour} {psnr:g}: {m['n_meshes']} meshes, {time.time() - started:.0f} s -->", flush=True)
+
+
+class _Subset:
+    """Some items of a dataset, as `evaluate_registered` takes one."""
+
+    def __init__(self, dataset, indices):
+        self.dataset, self.indices = dataset, indices
+
+    def __len__(self):
+        return len(self.indices)
+
+    def __getitem__(self, index):
+        return self.dataset[self.indices[index]]
+
+
+def _of_kind(dataset, kind: str, scan: int) -> _Subset:
+    """The test meshes whose texture the default's grids call magnified (cells of its 64^2 grid over
+    `fine_above` px in a standard view) or minified (under `coarse_below` px)."""
+    from meshseal.data.dataset import collate
+    from meshseal.methods.batches import unpadded
+    from meshseal.models.spread import cell_pixels
+
+    config = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())["model"]
+    chosen = []
+    for index in range(min(scan, len(dataset))):
+        positions, _, uvs, faces = unpadded(collate([dataset[index]], "cpu"), 0)
+        width = cell_pixels(positions, faces, uvs, config["chips"])
+        if (kind == "magnified" and width > config["fine_above"]) or (kind == "minified" and width < 0.6):
+            chosen.append(index)
+    return _Subset(dataset, chosen)
 
 
 if __name__ == "__main__":

@@ -67,6 +67,28 @@ def resampled_prediction(relit: MeshBatch, cameras: Cameras, lights, height: int
     return F.interpolate(render, size=(height, width), mode="bicubic", antialias=True, align_corners=False)
 
 
+POINT_ENOUGH = 2.0 / 255  # RMS of the fine detail point samples leave unexplained, under which they are taken
+
+
+def _point_samples_explain(found: RelitResidual, n_images: int, height: int, width: int) -> bool:
+    """Whether the relit original, point-sampled as it is, already explains every picture's fine detail
+    (both high-passed as `picture_footprint` compares them) to within `POINT_ENOUGH`: a picture our
+    renderer made, under the light the reading found, misses it by its 8-bit rounding and its mark alone.
+    No area footprint can then explain much more, and the footprint search (a supersampled render and
+    its blurs) is skipped. Looks at the picture and the original only."""
+    from ..models.spread import local_mean
+
+    if len(found.keep) == 0:
+        return False
+    pixel = found.fragments.pixel.index_select(0, found.keep)
+    values = torch.cat([found.seen, found.expected], 1)
+    detail = values - local_mean(values, pixel, (n_images, height, width), 1.5)
+    misfit = ((detail[:, :3] - detail[:, 3:]) ** 2).mean(1)
+    total = misfit.new_zeros(n_images).index_add_(0, found.image_index, misfit)
+    count = misfit.new_zeros(n_images).index_add_(0, found.image_index, torch.ones_like(misfit))
+    return bool(((total / count.clamp_min(1.0)).sqrt() < POINT_ENOUGH).all()) and bool((count > 0).all())
+
+
 def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,
                       sigmas: tuple[float, ...] = FOOTPRINT_SIGMAS,
                       resampled: tuple[float, ...] = RESAMPLED) -> Footprint:
@@ -90,6 +112,9 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     scale = supersampling(height, width)
     n_images = len(cameras)
     relit = found.relit
+    if _point_samples_explain(found, n_images, height, width):  # nothing finer to find: no supersampled render
+        point = torch.full((n_images,), float("nan"), device=found.expected.device)
+        return Footprint(found.expected, torch.ones_like(found.keep, dtype=torch.bool), point, None, None, scale)
     positions = relit.positions.expand(n_images, -1, -1) if relit.positions.shape[0] == 1 else relit.positions
     clip = cameras.world_to_clip(positions, width / height)
 
