@@ -24,6 +24,7 @@ import torch
 import meshseal
 import meshseal.methods.spread as spread_module
 import meshseal.reading.footprint as footprint_module
+import meshseal.reading.relight as relight_module
 import meshseal.render.relight as light_module
 from meshseal import payload
 from meshseal.api import Watermarker
@@ -40,7 +41,8 @@ _real_relit, _real_fit, _real_footprint = spread_module.relit_residual, light_mo
 
 def _reading(mode: str, clean: torch.Tensor, lights: PointLights, ambient: float):
     """Patch the reading for `mode` (undone by `_restore`)."""
-    if mode == "truelight":
+    if mode == "truelight":  # the light itself, not polished further
+        relight_module.POLISH_ITERATIONS = -1
         light_module.fit_point_light = lambda seen, *a, **k: (torch.full((1, 3), ambient, dtype=seen.dtype),
                                                                PointLights(lights.position.to(seen), lights.intensity.to(seen)))
     elif mode == "oracle":
@@ -52,8 +54,12 @@ def _reading(mode: str, clean: torch.Tensor, lights: PointLights, ambient: float
         spread_module.picture_footprint = lambda *a, **k: None  # the oracle's prediction is already as sampled
 
 
+_POLISH = relight_module.POLISH_ITERATIONS
+
+
 def _restore():
     spread_module.relit_residual, light_module.fit_point_light = _real_relit, _real_fit
+    relight_module.POLISH_ITERATIONS = _POLISH
     spread_module.picture_footprint = _real_footprint
 
 
