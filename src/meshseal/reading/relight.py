@@ -148,35 +148,32 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
         slot = torch.full((rows * columns,), -1, dtype=torch.long, device=at.device)
         slot.index_copy_(0, at, torch.arange(len(at), device=at.device))
         around = slot[(at.index_select(0, used)[:, None] + offsets).clamp(0, rows * columns - 1)]  # (U, 9)
-        # left out: a pixel not whole after all (at the window's edge), or with a neighbour that is near
-        # white in the picture or under the first fit's light (the renderer clamps each lit colour before
-        # splatting, which the model does not)
-        bright = seen.index_select(0, chosen).amax(1) >= NEAR_WHITE
-        first = position[index, 0][None]
-        p_all, n_all = world.index_select(0, chosen), unit.index_select(0, chosen)
-        to_light = first - p_all
-        distance = to_light.norm(dim=1).clamp_min(1e-12)
-        lambert_first = ((n_all * to_light).sum(1) / distance).clamp_min(0.0) / attenuation(distance)
-        lit_first = lookup.index_select(0, chosen) * (K_AMBIENT * ambient[index] + K_DIFFUSE * intensity[index, 0]
-                                                      * lambert_first[:, None])
-        bright = bright | (lit_first.amax(1) >= NEAR_WHITE)
-        keep = (around >= 0).all(1) & ~bright[around.clamp_min(0)].any(1)
+        keep = (around >= 0).all(1)  # not whole after all (at the window's edge): left out
         used, around = used[keep], around[keep]
         if len(used) < 16:
             continue
         needed, around = torch.unique(around, return_inverse=True)
         picked = chosen.index_select(0, needed)
         p, n, u = world.index_select(0, picked), unit.index_select(0, picked), lookup.index_select(0, picked)
-        y = seen.index_select(0, chosen[used])  # (U, 3)
-        centre = torch.searchsorted(needed, used)  # each used pixel's own fragment among the needed
-        a_term = albedo.index_select(0, chosen[used])  # the point model's: the antialiased albedo
-
         p_squared, n_dot_p = (p * p).sum(1, keepdim=True), (n * p).sum(1, keepdim=True)
 
         def lambert(candidates: torch.Tensor) -> torch.Tensor:  # (K, 3) -> (N, K) at the needed fragments
             # |c - p| and n.(c - p) as matrix products, as `fit_point_light` scores its candidates
             distance = (p_squared - 2.0 * p @ candidates.T + (candidates * candidates).sum(1)).clamp_min(1e-24).sqrt()
             return ((n @ candidates.T - n_dot_p) / distance).clamp_min(0.0) / attenuation(distance)
+
+        # left out too: a pixel with a neighbour near white in the picture or under the first fit's light
+        # (the renderer clamps each lit colour before splatting, which the model does not)
+        start = position[index, 0]
+        lit = u * (K_AMBIENT * ambient[index] + K_DIFFUSE * intensity[index, 0] * lambert(start[None]))
+        bright = (seen.index_select(0, picked).amax(1) >= NEAR_WHITE) | (lit.amax(1) >= NEAR_WHITE)
+        keep = ~bright[around].any(1)
+        used, around = used[keep], around[keep]
+        if len(used) < 16:
+            continue
+        y = seen.index_select(0, chosen[used])  # (U, 3)
+        centre = torch.searchsorted(needed, used)  # each used pixel's own fragment among the needed
+        a_term = albedo.index_select(0, chosen[used])  # the point model's: the antialiased albedo
 
         def fit(diffuse_term: torch.Tensor):  # (U, 3, K) -> residuals (U, 3, K), a (3, K), d (3, K)
             a_ = a_term[:, :, None]
@@ -191,7 +188,6 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
             lit = u[:, :, None] * lambert(candidates)[:, None, :]  # (N, 3, K)
             return torch.einsum("o,uocK->ucK", weights, lit[around])
 
-        start = position[index, 0]
         point = float((fit(a_term[:, :, None] * lambert(start[None])[centre][:, None, :])[0] ** 2).sum())
         # the sampling that explains these pixels best at the first fit's light: splatted, or point samples
         costs = []
