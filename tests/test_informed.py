@@ -64,8 +64,8 @@ def test_point_light_fit_explains_our_renders():
 @pytest.mark.parametrize("blend", ["splat", "hard"])
 @pytest.mark.parametrize("name", ["bunny.glb", "sh3d_crate/crate.obj", "teapot/teapot.obj"])
 def test_the_polished_light_is_the_light_that_rendered_the_picture(monkeypatch, name, blend):
-    """The light fit of every reading (`relight.fitted_light`) finds the light our renderer used, splatted
-    or point-sampled: the point model alone (the polish switched off) is tenths of a unit off and trades
+    """The light fit of every reading (`relight.relit_residual`) finds the light our renderer used,
+    splatted or point-sampled: the first fit alone (registration's) is tenths of a unit off and trades
     diffuse for ambient light; the polish under the picture's own sampling recovers the position within
     two hundredths and the strengths within a percent (the teapot's red bricks clip at white under its
     light: the pixels beside a clipped one are left out), and the relit original then predicts the
@@ -76,14 +76,13 @@ def test_the_polished_light_is_the_light_that_rendered_the_picture(monkeypatch, 
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
     picture = torch.round(MeshRenderer(blend=blend)(mesh, cameras, lights, 128, 128).image.clamp(0, 1) * 255) / 255
     off = lambda found: float((found.position - lights.position).norm())  # noqa: E731
-    _, polished, _ = relight.fitted_light(mesh, picture, cameras)
-    monkeypatch.setattr(relight, "POLISH_ITERATIONS", -1)
-    relit, point, _ = relight.fitted_light(mesh, picture, cameras)
-    assert off(point) > 0.1 and off(polished) < 0.02
-    assert float((polished.intensity - 1.0).abs().max()) < 0.01
-    monkeypatch.undo()
+    found = relight.relit_residual(mesh, picture, cameras)
+    _, point, _ = relight.fitted_light(mesh, picture, cameras)  # registration's: the first fit alone
+    assert off(point) > 0.1 and off(found.lights) < 0.02
+    assert float((found.lights.intensity - 1.0).abs().max()) < 0.01
+    monkeypatch.setattr(relight, "POLISH_ITERATIONS", -1)  # the polish switched off: the first fit's light
+    assert off(relight.relit_residual(mesh, picture, cameras).lights) == pytest.approx(off(point))
     if blend == "splat":  # the relit original is our splatted render: it predicts the picture itself
-        found = relight.relit_residual(mesh, picture, cameras)
         assert float((found.seen - found.expected).pow(2).mean().sqrt()) < 0.6 / 255
 
 

@@ -58,17 +58,21 @@ def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch
 
 
 def fitted_light(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all"):
-    """`relit_residual`'s fit alone: the original with the fitted ambient factors, the point lights
-    (the same numbers) and the rasterization they were fitted on (a render of the relit original from
+    """`relit_residual`'s first fit alone (not polished: see `_fit`): the original with the fitted
+    ambient factors, the point lights (the same numbers) and the rasterization they were fitted on (a render of the relit original from
     `cameras` can reuse it), without rendering the relit original (registration renders it itself)."""
     with torch.no_grad():
-        fragments, relit, lights, _, _ = _fit(mesh, image, cameras, light_from)
+        fragments, relit, lights, _, _ = _fit(mesh, image, cameras, light_from, polish=False)
         return relit, lights, fragments
 
 
-def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str):
+def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str, polish: bool = True):
     """The light fit of `relit_residual`: (fragments, relit mesh, lights, antialiased albedo (P, 3),
-    and the surface the renders look up, `MeshRenderer.surface`, which relighting does not change)."""
+    and the surface the renders look up, `MeshRenderer.surface`, which relighting does not change).
+    `polish` (the reading's, not registration's): `splat_polished_light` after the first fit.
+    Registration keeps the first fit: its texture stage compares band-passed pictures, which a light a
+    few tenths of a unit off barely moves, and on a picture lit as no point light lights it (Blender's
+    Workbench studio light) a polished light can pull its camera off."""
     from ..render import rasterize
 
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
@@ -85,7 +89,7 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
     fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
     seen = pixels_at(image, fragments)
     _, ambient, lights = relight_fragments(mesh, fragments, cameras, seen, albedo, fit_on, predict=False)
-    if renderer.blend == "splat":
+    if polish:
         inside = pixels_at(flat.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
         ambient, lights = splat_polished_light(fragments, surface, cameras, seen, albedo, inside, ambient, lights,
                                                (n_images, height, width), renderer.sigma, fit_on)
