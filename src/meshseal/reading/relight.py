@@ -59,8 +59,9 @@ def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch
 
 def fitted_light(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all"):
     """`relit_residual`'s first fit alone (not polished: see `_fit`): the original with the fitted
-    ambient factors, the point lights (the same numbers) and the rasterization they were fitted on (a render of the relit original from
-    `cameras` can reuse it), without rendering the relit original (registration renders it itself)."""
+    ambient factors, the point lights (the same numbers) and the rasterization they were fitted on (a
+    render of the relit original from `cameras` can reuse it), without rendering the relit original
+    (registration renders it itself)."""
     with torch.no_grad():
         fragments, relit, lights, _, _ = _fit(mesh, image, cameras, light_from, polish=False)
         return relit, lights, fragments
