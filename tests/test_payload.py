@@ -397,7 +397,7 @@ def test_the_table_decoder_answers_as_galois_does(n_bits):
 
     code, schema = _code(n_bits), _schema(n_bits)
     rng = np.random.default_rng(7)
-    for trial in range(300):
+    for trial in range(200):
         if trial % 5 == 4:
             word = rng.integers(0, 2, code.n).astype(np.uint8)
         else:
