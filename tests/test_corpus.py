@@ -63,6 +63,7 @@ def _problems(run: dict, result: dict | None) -> list[str]:
     return problems
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("group", corpus_gen.GROUPS)
 def test_every_command_on_every_case(corpus, group, tmp_path):
     runs = [run for run in corpus.runs if run["group"] == group]

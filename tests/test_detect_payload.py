@@ -63,6 +63,7 @@ def test_pooling_decides_once_and_bad_pictures_do_not_stop_the_batch(pictures, c
     assert "error" in results[0] and results[1]["message"] == "ab42"
 
 
+@pytest.mark.heavy
 def test_worker_processes_read_as_one_process_does(pictures, capsys):
     """--workers 2: spawned processes read the pictures; the lines, their order, the errors and the
     pooled decision are those of one process."""

@@ -271,6 +271,7 @@ INFORMED = {
 }
 
 
+@pytest.mark.heavy
 def test_informed_model_trains_and_round_trips_on_the_cli(tmp_path, capsys):
     import shutil
 

@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from PIL import Image
 
@@ -84,6 +85,7 @@ def test_a_registered_silhouette_a_few_pixels_off_cuts_the_object_out_again():
     assert mask_iou(recut(picture, off), truth) > 0.9
 
 
+@pytest.mark.heavy
 def test_a_cut_that_took_in_a_patch_of_the_background_is_mended_from_its_registration():
     """A first guess of the object's pixels that also holds a square of the background: registered on
     it, the camera is off and the texture does not confirm it; `register_with_masks` with `recut` cuts

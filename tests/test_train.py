@@ -203,6 +203,7 @@ def test_vertex_marks_train_on_baked_views_too_and_informed_models_are_refused(d
         Trainer(informed, tmp_path / "on", log=quiet)
 
 
+@pytest.mark.heavy
 def test_two_processes_under_torchrun_train_as_one_at_the_same_global_batch(dataset, tmp_path):
     """Data-parallel training (gloo on the CPU): each process takes half of every global batch, the
     gradients are averaged and batch normalisation sees the global batch, so two processes end with
