@@ -68,7 +68,9 @@ def main() -> None:
             cells = " | ".join(f"{m['attacks'][a]['detected']:.2f} / {m['attacks'][a]['exact']:.2f}" for a in attacks)
             print(f"| {colour} | {psnr:g} | {m['flip_object']:.4f} / {m['flip_object_p95']:.4f} | {m['psnr_object']:.2f} | "
                   f"{cells} |", flush=True)
-            print(f"<!-- {colour} {psnr:g}: {m['n_meshes']} meshes, {time.time() - started:.0f} s -->", flush=True)
+            named = " ".join(f"{a} {m['attacks'][a]['named']:.2f}/{m['attacks'][a]['bit_acc']:.3f}" for a in attacks)
+            print(f"<!-- {colour} {psnr:g}: {m['n_meshes']} meshes, {time.time() - started:.0f} s; named / bit accuracy: "
+                  f"{named} -->", flush=True)
 
 
 class _Subset:
