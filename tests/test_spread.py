@@ -700,3 +700,22 @@ def test_a_resized_picture_is_predicted_as_resized(monkeypatch):
         monkeypatch.setattr(spread_module, "picture_footprint", functools.partial(picture_footprint, resampled=()))
         gaussian = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
     assert float((resizing * signs).mean()) > 1.1 * float((gaussian * signs).mean()) > 0
+
+
+def test_a_bit_block_gives_each_bit_whole_blocks_of_cells_and_leaves_the_shipped_draws_alone():
+    from meshseal.models.spread import SpreadSpectrumEncoder
+
+    plain = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0)
+    again = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, block=1)
+    assert torch.equal(plain.assign, again.assign) and torch.equal(plain.sign, again.sign)
+    assert torch.equal(plain.assign, torch.randperm(64 * 64, generator=torch.Generator().manual_seed(0)) % 64)
+    blocked = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, block=2)
+    for key_seed in (None, 12345):
+        assign, sign = blocked.pattern(key_seed, 64)
+        grid = assign.reshape(32, 2, 32, 2)
+        assert (grid == grid[:, :1, :, :1]).all()  # one bit a 2x2 block
+        assert torch.equal(torch.bincount(assign, minlength=64), torch.full((64,), 64))  # every bit as many cells
+        assert not (grid == torch.roll(grid, 1, 2)).all()  # neighbouring blocks differ somewhere
+        assert 0.4 < float((sign > 0).float().mean()) < 0.6
+    config = ModelConfig.from_dict({"n_bits": 64, "texture_encoder": "spread", "chips": 64, "bit_block": 2})
+    assert WatermarkModel(config).texture_encoder.block == 2

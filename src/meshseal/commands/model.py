@@ -103,6 +103,9 @@ def register(subparsers) -> None:
     evaluate.add_argument("--max-flip", type=_budget, default=None,
                           help="with --register, spread-spectrum models: mark each mesh under this FLIP budget, as "
                                "`meshseal embed` does (default 0.03; 0: strength 1 throughout)")
+    evaluate.add_argument("--strength", type=_strength, default=None,
+                          help="spread-spectrum models: mark each mesh at this strength, as `meshseal embed "
+                               "--strength` does: used as given, unless --max-flip is given too")
     evaluate.add_argument("--attacks", default=None, metavar="LIST",
                           help="informed models: also read every picture after each of these attacks, comma-"
                                "separated, or 'all' (none, jpeg95, jpeg90, jpeg75, jpeg50, jpeg95_444, jpeg90_444 "
@@ -171,6 +174,16 @@ def _asset_id(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got '{text}'") from None
     if value < 0:
         raise argparse.ArgumentTypeError(f"an asset ID is not negative, got {value}")
+    return value
+
+
+def _strength(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
+    if not 0.0 < value <= 100.0:
+        raise argparse.ArgumentTypeError(f"expected a strength in (0, 100], got {value}")
     return value
 
 
@@ -479,10 +492,12 @@ def run_eval(args) -> int:
         if not watermarker.informed:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
         log = None if args.json else print
-        max_flip = MAX_FLIP if args.max_flip is None else (args.max_flip or None)
+        default_budget = args.strength is None
+        max_flip = (MAX_FLIP if default_budget else None) if args.max_flip is None else (args.max_flip or None)
         metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(size, 64),
                                       args.sampler, log if args.register else None, views=args.views,
-                                      register=args.register, max_flip=max_flip, attacks=attacks)
+                                      register=args.register, max_flip=max_flip, attacks=attacks,
+                                      strength=1.0 if args.strength is None else args.strength)
     else:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,

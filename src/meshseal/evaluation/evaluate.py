@@ -60,7 +60,8 @@ def picture_kinds(encoder, grid: int | None, pictures: torch.Tensor, masks: torc
 
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
                         size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
-                        max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None) -> dict:
+                        max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None,
+                        strength: float = 1.0) -> dict:
     """Informed models end to end, as `meshseal detect --register` runs: each test mesh is watermarked
     (with an error-corrected 32-bit ID when the model has a payload schema, else random raw bits),
     rendered `views` times (size x size 8-bit pictures, random views and lights from `sampler`'s
@@ -71,8 +72,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     message rate, per picture and, with several views, pooled over each mesh's pictures. Slow.
     `register` False skips registration: the camera-known figures alone, as `meshseal detect` reads
     pictures with camera metadata (fast enough for the whole split). Calibrated models mark each mesh
-    under `meshseal embed`'s FLIP budget `max_flip` (its 4 seed views; None: strength 1 throughout) and
-    report the mean strength used and the share of meshes whose strength the budget lowered.
+    under `meshseal embed`'s FLIP budget `max_flip` (its 4 seed views; None: `strength` throughout),
+    starting from `strength` as `embed --strength` does, and report the mean strength used and the share
+    of meshes whose strength the budget lowered.
     `attacks` (names of `meshseal.attacks`): each 8-bit picture is also read after each attack (JPEG,
     WebP, resizing, crops, a screenshot, ...), registered (or, without `register`, with its camera:
     photometric attacks only), and `result["attacks"]` gives per attack the pictures, the share
@@ -115,19 +117,19 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
         with torch.no_grad():
             used = batch_texels_used(batch)
-            strength = None  # learned models have no strength
+            used_strength = None  # learned models have no strength
             if calibrated:  # as `meshseal embed` marks it: within its FLIP budget
                 normals_marked, uvs_marked = normals, uvs
                 grid = batch_mark_grid(model.texture_encoder, batch)
                 mark = lambda at: model.texture_encoder(texture, message, at, payload.key_seed(None), grid, used)  # noqa: E731
                 if max_flip is None:
-                    texture_marked, strength = mark(1.0), 1.0
+                    texture_marked, used_strength = mark(strength), strength
                 else:
                     seen_original, inside = seed_renders(MeshBatch.from_tensors(positions, normals, uvs, faces, texture),
                                                          BUDGET_VIEWS)
                     flip = lambda t: visibility(seen_original, seed_renders(  # noqa: E731
                         MeshBatch.from_tensors(positions, normals, uvs, faces, t), BUDGET_VIEWS)[0], inside)["flip_object"]
-                    texture_marked, strength, _ = strength_within(mark, flip, 1.0, max_flip)
+                    texture_marked, used_strength, _ = strength_within(mark, flip, strength, max_flip)
             else:
                 normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
             cameras, lights = sample_views(views, sampler, generator)
@@ -169,7 +171,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "exact_known": truth is not None and truth.message == identity}
             rows.append(row | {"kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
-                               "strength": strength})
+                               "strength": used_strength})
             for number, name in enumerate(attacked):
                 rng = np.random.default_rng([seed, index, view, number])
                 hit = attack_picture(name, np.round(picture * 255).astype(np.uint8), rng).astype(np.float32) / 255.0
@@ -211,7 +213,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
               "n_unreadable": sum(r["unreadable"] for r in rows)}
     if calibrated and max_flip is not None:
         result |= {"max_flip": max_flip, "strength_mean": mean("strength"),
-                   "strength_lowered": float(np.mean([r["strength"] < 1.0 for r in rows]))}
+                   "strength_lowered": float(np.mean([r["strength"] < strength for r in rows]))}
+    if calibrated and max_flip is None:
+        result |= {"strength_mean": strength}
     if coded:
         result |= {"tpr": mean("detected"), "exact_message": mean("exact"), "tpr_message_named": mean("named"),
                    "tpr_known_camera": mean("detected_known"),

@@ -114,8 +114,8 @@ class SpreadMethod(Method):
 
     name = "spread"
     params_named = ("n_bits", "chips", "coarse_chips", "coarse_below", "fine_chips", "fine_above", "mark_colour",
-                    "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "read_highpass", "read_window",
-                    "read_brightness")
+                    "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "read_highpass",
+                    "read_window", "read_brightness")
     informed = True
     calibrated = True
     takes_strength = True

@@ -62,13 +62,13 @@ class SpreadSpectrumEncoder(nn.Module):
 
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
-                 fine_chips: int = 0, fine_above: float = 2.0):
+                 fine_chips: int = 0, fine_above: float = 2.0, block: int = 1):
         super().__init__()
         if colour not in COLOURS:
             raise ValueError(f"mark colour must be one of {', '.join(COLOURS)}")
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
-        self.fine_chips, self.fine_above = fine_chips, fine_above
+        self.fine_chips, self.fine_above, self.block = fine_chips, fine_above, block
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
@@ -101,7 +101,13 @@ class SpreadSpectrumEncoder(nn.Module):
     def _draw(self, seed: int, chips: int) -> tuple[torch.Tensor, torch.Tensor]:
         generator = torch.Generator().manual_seed(seed)
         cells = chips * chips
-        assign = torch.randperm(cells, generator=generator) % self.n_bits
+        block = self.block if self.block > 1 and chips % self.block == 0 else 1
+        if block == 1:
+            assign = torch.randperm(cells, generator=generator) % self.n_bits
+        else:  # a bit takes block x block neighbouring cells, so that a JPEG block holds few bits
+            side = chips // block
+            blocks = (torch.randperm(side * side, generator=generator) % self.n_bits).reshape(side, side)
+            assign = blocks.repeat_interleave(block, 0).repeat_interleave(block, 1).reshape(-1)
         return assign, torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
 
     def pattern(self, key_seed: int | None = None, chips: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
