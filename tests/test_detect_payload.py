@@ -164,3 +164,51 @@ def test_a_mark_in_an_obj_jpeg_texture_survives_the_file(tmp_path, capsys):
     assert main(["detect", str(tmp_path / "v.png"), "--mesh", str(crate), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["detected"] and result["message"] == "jp"
+
+
+def _cells(method, bits, mu, key, rng):
+    """A reading whose cell sums carry `bits` at `mu` per cell in unit Gaussian noise."""
+    import types
+
+    import torch
+
+    encoder = method.encoder
+    assign, sign = encoder.pattern(method.key_seed(key), encoder.chips)
+    cell = sign * (2 * bits[assign] - 1) * mu + torch.from_numpy(rng.standard_normal(assign.numel())).float()
+    return types.SimpleNamespace(evidence=cell, tries=1, box=None, camera="metadata", registration_iou=None)
+
+
+def test_a_list_of_ids_names_the_one_carried_pays_for_its_length_and_is_never_too_bold():
+    from meshseal import payload
+    from meshseal.api import load
+
+    method = load("default").method
+    ids = tuple(range(5000, 6000))
+    assert np.array_equal(payload.encode_many(ids[:50] + ("ab42",), "k").numpy(),
+                          np.stack([payload.encode(m, "k").numpy() for m in ids[:50] + ("ab42",)]))
+    rng = np.random.default_rng(0)
+    carried = payload.encode(5123, "k")
+    # Faint: the any-message test and the code miss it; the list finds it, its p-value times 1000 and all.
+    faint = _cells(method, carried, 0.11, "k", rng)
+    alone, listed = method.decide([faint], "k"), method.decide([faint], "k", ids)
+    assert not alone.detected and listed.detected and listed.message == 5123 and listed.list_only
+    one = method.decide([faint], "k", 5123)
+    assert listed.p_value == pytest.approx(min(1.0, len(ids) * one.p_value), rel=1e-9)
+    # Clear, but not on the list: the code reads the mark's own ID and the list is not credited.
+    clear = _cells(method, carried, 0.3, "k", rng)
+    elsewhere = method.decide([clear], "k", tuple(range(6000, 7000)))
+    assert not elsewhere.detected and elsewhere.message == 5123 and elsewhere.list_only is None
+    assert method.decide([clear], "k", ids).list_only is False
+    # No mark: the list's p-values are conservative (no more small ones than their level allows).
+    p = np.array([method.decide([_cells(method, carried, 0.0, "k", rng)], "k", ids).p_value for _ in range(300)])
+    assert (p <= 0.05).mean() <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 300) and p.min() > 1e-4
+
+
+def test_detect_reads_a_list_of_ids_from_a_file(pictures, capsys, tmp_path):
+    listing = tmp_path / "ids.txt"
+    listing.write_text("# our buyers\n12\n\n7  # repeated below\n7\n")
+    code, results, _ = _detect(capsys, pictures / "views" / "v_0.png", "--key", "s3cret", "--expect-ids", listing)
+    assert code == 1 and not results[0]["detected"] and results[0]["message"] == "ab42"  # a text mark, not an ID listed
+    listing.write_text("12\nseven\n")
+    assert main(["detect", str(pictures / "clean.png"), "--mesh", BUNNY, "--expect-ids", str(listing)]) == 2
+    assert "line 2" in capsys.readouterr().err

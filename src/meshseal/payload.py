@@ -202,6 +202,63 @@ def encode(message: str | int | Message, key: str | bytes | None = None, n_bits:
     return torch.from_numpy(raw.astype(np.float32))
 
 
+def encode_many(messages, key: str | bytes | None = None, n_bits: int = 64) -> torch.Tensor:
+    """Raw bits (M, n_bits) of 0./1. for many messages at once (an owner's list of asset IDs, say):
+    row i is `encode(messages[i], key, n_bits)`. The code, the parity bit, the whitening and the
+    placement are all linear over GF(2) (the whitening affine), so each row is the zero word's raw bits
+    XOR the data bits times a k x n_bits matrix built once from the generator polynomial, without
+    galois and in one matrix product. The last list's answer is kept (a picture's decision asks for it
+    several times)."""
+    messages = tuple(messages)
+    if _LAST_MANY and _LAST_MANY[0] == (key, n_bits, messages):
+        return _LAST_MANY[1]
+    schema = _schema(n_bits)
+    words = []
+    for message in messages:
+        kind, value = _payload_value(message, n_bits)
+        words.append((SCHEMA_VERSION << (schema.k - 2)) | (kind << schema.payload_bits) | value)
+    shifts = np.arange(schema.k - 1, -1, -1, dtype=np.uint64)
+    data = ((np.asarray(words, dtype=np.uint64)[:, None] >> shifts) & np.uint64(1)).astype(np.int64)  # (M, k)
+    rows = _generator_rows(n_bits, key)  # (k, n_bits): the raw bits each data bit flips
+    raw = (data @ rows) % 2 ^ _raw_of_zero(n_bits, key)
+    result = torch.from_numpy(raw.astype(np.float32))
+    _LAST_MANY[:] = [(key, n_bits, messages), result]
+    return result
+
+
+_LAST_MANY: list = []
+
+
+def _codeword_bits(word: int, n_bits: int) -> np.ndarray:
+    """The systematic BCH codeword of data word `word` (data first, then the check bits: the remainder
+    of data(x) x^(n-k) by the generator) and the overall parity bit: (n_bits,) uint8."""
+    schema, generator = _schema(n_bits), GENERATORS[n_bits]
+    checks = generator.bit_length() - 1
+    remainder = word << checks
+    while remainder.bit_length() > checks:
+        remainder ^= generator << (remainder.bit_length() - 1 - checks)
+    value = (word << checks) | remainder
+    bits = np.array([(value >> (n_bits - 2 - i)) & 1 for i in range(n_bits - 1)], dtype=np.uint8)
+    assert schema.k + checks == n_bits - 1
+    return np.append(bits, np.uint8(bits.sum() % 2))
+
+
+def _placed(codeword: np.ndarray, key, n_bits: int, whiten: bool) -> np.ndarray:
+    raw = np.empty(n_bits, dtype=np.uint8)
+    raw[_permutation(key, n_bits)] = codeword ^ _keystream(key, n_bits) if whiten else codeword
+    return raw
+
+
+def _raw_of_zero(n_bits: int, key) -> np.ndarray:
+    return _placed(np.zeros(n_bits, dtype=np.uint8), key, n_bits, True).astype(np.int64)
+
+
+def _generator_rows(n_bits: int, key) -> np.ndarray:
+    schema = _schema(n_bits)
+    return np.stack([_placed(_codeword_bits(1 << (schema.k - 1 - i), n_bits), key, n_bits, False)
+                     for i in range(schema.k)]).astype(np.int64)
+
+
 # --- decode -----------------------------------------------------------------------------------------
 
 def _as_soft(soft) -> np.ndarray:

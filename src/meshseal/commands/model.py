@@ -67,6 +67,9 @@ def register(subparsers) -> None:
     expect = detect.add_mutually_exclusive_group()
     expect.add_argument("--expect", default=None, help="test for this one text message (p-value of the match)")
     expect.add_argument("--expect-id", type=_asset_id, default=None, help="test for this one asset ID")
+    expect.add_argument("--expect-ids", type=Path, default=None, metavar="FILE",
+                        help="test for the asset IDs listed in FILE, one a line ('#' starts a comment): which "
+                             "of them the picture carries, its p-value paying for the list's length")
     detect.add_argument("--pool", action="store_true",
                         help="decide once for all the pictures (views of one asset), adding their evidence")
     detect.add_argument("--json", "--jsonl", dest="json", action="store_true",
@@ -290,6 +293,34 @@ def picture_paths(paths: list[Path]) -> list[Path]:
     return pictures
 
 
+def _expected(args):
+    """What `detect` tests for: --expect's text, --expect-id's ID, --expect-ids' list (a tuple), or None."""
+    if getattr(args, "expect_ids", None) is not None:
+        return read_ids(args.expect_ids)
+    return args.expect if args.expect_id is None else args.expect_id
+
+
+def read_ids(path: Path) -> tuple[int, ...]:
+    """Asset IDs from a text file, one a line; blank lines and '#' comments skipped, repeats kept once."""
+    require_files((path, "list of asset IDs"))
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as error:
+        raise MeshsealError(f"cannot read the list of asset IDs {path}: {error}") from None
+    ids = {}
+    for number, line in enumerate(lines, 1):
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        try:
+            ids[_asset_id(text)] = None
+        except argparse.ArgumentTypeError as error:
+            raise MeshsealError(f"{path}, line {number}: {error}") from None
+    if not ids:
+        raise MeshsealError(f"{path} lists no asset IDs")
+    return tuple(ids)
+
+
 def _describe(result, expect=None) -> str:
     """One line for a person: the decision, the message, the evidence."""
     how = "" if result.camera is None else f", camera: {result.camera}"
@@ -298,6 +329,16 @@ def _describe(result, expect=None) -> str:
     if result.detected is None:
         return f"bits {result.bits}{how}"
     p_value = f"p = {result.p_value:.2g}"
+    if isinstance(expect, tuple):  # the owner's list
+        listed = f"{len(expect)} ID{'s' if len(expect) != 1 else ''} listed"
+        if result.detected:
+            corrected = f", {result.errors_corrected} bit(s) off" if result.errors_corrected else ""
+            faint = ("; too faint for the code to read alone, so an ID outside the list is not ruled out"
+                     if result.list_only else "")
+            return f"detected {json.dumps(result.message)}, of the {listed} ({p_value} of the match{corrected}{how}){faint}"
+        if result.message is not None:
+            return f"none of the {listed}: the mark reads {json.dumps(result.message)} ({p_value} of the best match{how})"
+        return f"none of the {listed} ({p_value} of the best match{how})" + (f": {result.reason}" if result.reason else "")
     if not result.detected and expect is not None and result.message is not None:
         return f"not {json.dumps(expect)}: the mark reads {json.dumps(result.message)} ({p_value} of the match{how})"
     if not result.detected:
@@ -314,6 +355,7 @@ def _describe(result, expect=None) -> str:
 def run_detect(args) -> int:
     # one picture named: a mistyped name is answered at once; of several, a missing one is that line's error
     require_files((args.mesh, "mesh file"), *([(args.images[0], "picture or folder")] if len(args.images) == 1 else []))
+    expect = _expected(args)
     stage = Stages()
     stage("loading the model" + (f" and {args.mesh.name}" if args.mesh is not None else ""))
     from ..api import load
@@ -321,7 +363,7 @@ def run_detect(args) -> int:
     watermarker = load(args.model)
     if not 1.0 <= args.fov <= 170.0:
         raise MeshsealError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
-    key, expect = _key(args), args.expect if args.expect_id is None else args.expect_id
+    key = _key(args)
     pictures = picture_paths(args.images)
     original = None
     if watermarker.informed:
@@ -331,7 +373,10 @@ def run_detect(args) -> int:
     if expect is not None:  # a message that cannot be a message of this model: say so before any work
         from .. import payload
 
-        payload.encode(expect, key, watermarker.n_bits)
+        if isinstance(expect, tuple):
+            payload.encode_many(expect, key, watermarker.n_bits)
+        else:
+            payload.encode(expect, key, watermarker.n_bits)
     failed, readings, decisions = 0, [], []
     progress = None
     if len(pictures) == 1:
@@ -394,7 +439,7 @@ def _readings(args, watermarker, original, paths: list[Path], workers: int):
     """(path, Detection (with --pool: its reading), error text) of each picture, in order. With more
     than one worker, spawned processes (one thread each) load the model and the original once and
     detect in parallel; a pool's decision stays with the caller."""
-    key, expect = _key(args), args.expect if args.expect_id is None else args.expect_id
+    key, expect = _key(args), _expected(args)
     task = (args.register, args.fov, key, expect, args.pool)
     if workers <= 1:
         yield from (_read_one(watermarker, original, path, *task) for path in paths)
@@ -534,10 +579,11 @@ def kind_table(kinds: dict, attacks: list[str]) -> str:
 def attack_table(table: dict) -> str:
     """`evaluate_registered`'s per-attack figures as a Markdown table."""
     figure = lambda value: "-" if value is None else f"{value:.3f}"  # noqa: E731
-    lines = ["| attack | pictures | detected | exact | detected, message named | bit accuracy | seconds |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| attack | pictures | detected | exact | detected, message named | detected and named, 1,000 IDs listed "
+             "| bit accuracy | seconds |", "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {name} | {row['pictures']} | {figure(row['detected'])} | {figure(row['exact'])} | "
-              f"{figure(row.get('named'))} | {figure(row['bit_acc'])} | {row['seconds']:.2f} |" for name, row in table.items()]
+              f"{figure(row.get('named'))} | {figure(row.get('listed'))} | {figure(row['bit_acc'])} | {row['seconds']:.2f} |"
+              for name, row in table.items()]
     return "\n".join(lines)
 
 

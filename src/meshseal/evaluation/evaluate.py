@@ -58,6 +58,24 @@ def picture_kinds(encoder, grid: int | None, pictures: torch.Tensor, masks: torc
     return kinds
 
 
+LISTED = 1000  # the owner's list of asset IDs in the `listed` figures: the mark's own and 999 others
+
+
+def _listed(identity: int, seed: int, index: int, n_bits: int) -> tuple[int, ...]:
+    """`LISTED` asset IDs, seeded per mesh, the mark's own among them at a random place."""
+    from .. import payload
+
+    rng = np.random.default_rng([seed, index, 7])
+    others = [int(v) for v in rng.integers(0, 2 ** payload.payload_bits(n_bits), LISTED - 1) if int(v) != identity]
+    others.insert(int(rng.integers(0, len(others) + 1)), identity)
+    return tuple(others)
+
+
+def _names(decision, identity: int) -> bool:
+    """Whether a decision against a list detected the mark and named its own ID."""
+    return bool(decision.detected) and decision.message == identity
+
+
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
                         size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
                         max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None,
@@ -80,7 +98,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     photometric attacks only), and `result["attacks"]` gives per attack the pictures, the share
     detected and read exactly, the bit accuracy and the seconds a picture. `named` (and
     `tpr_message_named`) is the share detected by the owner who names the message (`detect --expect`:
-    the match's p-value, on the reading `detect` made without it)."""
+    the match's p-value, on the reading `detect` made without it); `listed` (and `tpr_among_listed`)
+    the share detected and named by the owner who lists `LISTED` asset IDs, the mark's among them
+    (`detect --expect-ids`: the best match's p-value times the list's length)."""
     from .. import payload
     from ..api import Watermarker
     from ..methods.spread import PALETTE_WARNING
@@ -112,6 +132,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         if coded:
             identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
             message = payload.encode(identity, None, model.n_bits)[None].to(device)
+            listed = _listed(identity, seed, index, model.n_bits)
         else:
             message = torch.randint(0, 2, (1, model.n_bits), generator=generator).float().to(device)
         positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
@@ -167,6 +188,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                 row |= {"detected": found is not None and bool(found.detected),
                         "exact": found is not None and found.message == identity,
                         "named": reading is not None and bool(watermarker.decide([reading], expect=identity).detected),
+                        "listed": reading is not None and _names(watermarker.decide([reading], expect=listed), identity),
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
             rows.append(row | {"kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
@@ -187,6 +209,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     "detected": coded and decision is not None and bool(decision.detected),
                     "exact": coded and decision is not None and decision.message == identity,
                     "named": coded and got is not None and bool(watermarker.decide([got], expect=identity).detected),
+                    "listed": coded and got is not None and _names(watermarker.decide([got], expect=listed), identity),
                     "seconds": time.perf_counter() - started})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
@@ -218,6 +241,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         result |= {"strength_mean": strength}
     if coded:
         result |= {"tpr": mean("detected"), "exact_message": mean("exact"), "tpr_message_named": mean("named"),
+                   "tpr_among_listed": mean("listed"),
                    "tpr_known_camera": mean("detected_known"),
                    "exact_message_known_camera": mean("exact_known"), "fpr_threshold": payload.FPR}
     if pooled:
@@ -243,12 +267,13 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     if attacked:
         result["attacks"] = {name: {"pictures": len(part), "detected": mean("detected", part) if coded else None,
                                     "exact": mean("exact", part) if coded else None,
-                                    "named": mean("named", part) if coded else None, "bit_acc": mean("bit_acc", part),
+                                    "named": mean("named", part) if coded else None,
+                                    "listed": mean("listed", part) if coded else None, "bit_acc": mean("bit_acc", part),
                                     "seconds": mean("seconds", part)} for name, part in attacked.items()}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
-            "tpr_message_named", "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
+            "tpr_message_named", "tpr_among_listed", "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
             "strength_lowered", "by_kind",
             "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
     return result

@@ -43,6 +43,9 @@ class Detection:
     `silhouette_iou`: the original's silhouette under the picture's camera against the picture's
     object (registered pictures; pictures whose camera came from metadata when they read no mark);
     `reason`: why no mark was read, where a plausible mistake explains it (`Watermarker.why_not`).
+    `list_only`: tested against a list of messages and detected, whether the message is the list's
+    best match alone (True: the code could not read it, so a message outside the list is not ruled
+    out) or the code read it too (False); None otherwise.
     """
 
     bits: str
@@ -57,6 +60,7 @@ class Detection:
     pictures: int = 1
     silhouette_iou: float | None = None
     reason: str | None = None
+    list_only: bool | None = None
 
     def to_dict(self) -> dict:
         result = {"detected": self.detected, "p_value": None if self.p_value is None else float(f"{self.p_value:.4g}"),
@@ -74,6 +78,8 @@ class Detection:
             result["silhouette_iou"] = round(self.silhouette_iou, 4)
         if self.reason is not None:
             result["reason"] = self.reason
+        if self.list_only is not None:
+            result["list_only"] = self.list_only
         return result
 
 
@@ -160,7 +166,10 @@ class Method:
                  "pictures": len(readings), "silhouette_iou": first.registration_iou if single else None}
         evidence = torch.stack([r.evidence for r in readings]).sum(0, keepdim=True)
         coded = self.n_bits in payload.SCHEMAS
-        expected = payload.encode(expect, key, self.n_bits) if expect is not None and coded else None
+        among = isinstance(expect, (list, tuple))  # the owner's list of messages: which of them, if any
+        expected = None
+        if expect is not None and coded:
+            expected = payload.encode_many(expect, key, self.n_bits) if among else payload.encode(expect, key, self.n_bits)
         soft, weights, tries = self.soft_bits(evidence, key, expected)
         tries *= math.prod(r.tries for r in readings)
         bits = "".join("1" if v > 0 else "0" for v in soft.tolist())
@@ -171,14 +180,23 @@ class Method:
         marked = any_mark_p is not None and payload.detected(any_mark_p)
         decoded = payload.decode(soft, key) if marked or expect is not None else None  # no message to report else
         if expect is not None:
+            named, family = expect, 1
+            if among:  # the message of the list that the soft bits agree with best, paid for by the list's length
+                best = int(((2.0 * expected.double() - 1.0) @ soft.double()).argmax())
+                named, family, expected = expect[best], len(expect), expected[best]
             if calibrated:
-                p_value = min(1.0, tries * float(payload.match_pvalue(soft, expected, weights)))
+                p_value = min(1.0, tries * family * float(payload.match_pvalue(soft, expected, weights)))
             else:
-                p_value = payload.binomial_pvalue(int(((soft > 0).float() == expected).sum()), self.n_bits)
+                p_value = min(1.0, family * payload.binomial_pvalue(int(((soft > 0).float() == expected).sum()), self.n_bits))
             # The match tests "no mark under this key" (its p-value is exact under that null whatever
             # the code reads), so a mark too weak for the code to decode is still found. A mark of
             # another message also correlates with this one: where the code reads another message, no.
-            detected = payload.detected(p_value) and decoded.message in (None, getattr(expect, "value", expect))
+            detected = payload.detected(p_value) and decoded.message in (None, getattr(named, "value", named))
+            if among and detected:  # the list names the message even where the code alone cannot read it
+                message = getattr(named, "value", named)
+                flipped = int(((soft > 0).double() != expected.double()).sum())
+                return Detection(bits, soft.tolist(), p_value, True, message, flipped, **extra,
+                                 list_only=decoded.message is None)
         elif calibrated:
             p_value, detected = any_mark_p, marked
         else:  # uncalibrated logits: no decision without an expected message

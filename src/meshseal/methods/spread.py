@@ -232,7 +232,8 @@ class SpreadMethod(Method):
     def soft_bits(self, evidence, key, expected):
         """Soft bits and cell weights of the cell grid (of those `evidence` holds side by side) whose
         mark is likeliest, and the number of grids tried. The pick is by the statistic the p-value
-        grows with (sum of z^2; with an `expected` message, its correlation with the message's signs),
+        grows with (sum of z^2; with an `expected` message, its correlation with the message's signs; with
+        several, the largest),
         so only the picked grid pays for an exact p-value; any rule of picking keeps the Bonferroni bound."""
         from ..models.spread import bit_weights, soft_bits, split_grids
 
@@ -241,8 +242,8 @@ class SpreadMethod(Method):
         softs = [soft_bits(self.encoder, sums, key_seed)[0].double() for sums in parts]
         if expected is None:
             scores = [float((soft * soft).sum()) for soft in softs]
-        else:
-            scores = [float((soft * (2.0 * expected.to(soft) - 1.0)).sum()) for soft in softs]
+        else:  # one message (N,) or a list of them (M, N): the best agreement
+            scores = [float(((2.0 * expected.to(soft) - 1.0) @ soft).max()) for soft in softs]
         best = max(range(len(parts)), key=scores.__getitem__)
         return softs[best], bit_weights(self.encoder, parts[best], key_seed)[0].double(), len(parts)
 
