@@ -41,9 +41,16 @@ def main() -> None:
                              "--scan): magnified textures (cells over fine_above px), minified (under coarse_below, "
                              "with coarse_chips 32)")
     parser.add_argument("--scan", type=int, default=284, help="test meshes to look through for --kind")
+    parser.add_argument("--dequantize", type=float, default=None,
+                        help="the reading's JPEG dequantisation prior (reading.compression.DEQUANTIZE_SIGMA; 0: off)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a model setting (YAML value), repeatable")
     args = parser.parse_args()
+    if args.dequantize is not None:
+        from meshseal.reading import compression
+
+        compression.DEQUANTIZE_SIGMA = args.dequantize
+        print(f"<!-- JPEG dequantisation prior sigma {args.dequantize:g} -->")
     base = yaml.safe_load((ROOT / "configs" / "robust.yaml").read_text())["model"]
     for item in args.set:
         key, value = item.split("=", 1)

@@ -174,3 +174,27 @@ def test_a_rendered_png_reads_as_the_full_codec_search_reads_it_without_any_code
     found = watermarker.detect(tmp_path / "v.png", original)
     assert tried == [] and found.message == "ab42"
     assert (found.bits, found.p_value, found.soft) == (searched.bits, searched.p_value, searched.soft)
+
+
+def test_a_jpegs_quantiser_says_more_of_a_grey_mark_than_its_residual_and_nothing_of_a_resized_jpeg():
+    from scipy.ndimage import gaussian_filter
+
+    from meshseal.reading.compression import _codec_round_trip, dequantized_luma, jpeg_luma_table
+
+    rng = np.random.default_rng(0)
+    host = gaussian_filter(np.clip(0.5 + 0.2 * rng.standard_normal((96, 96, 3)), 0, 1), (1.0, 1.0, 0))
+    mark = rng.choice([-1.0, 1.0], (48, 48)).repeat(2, 0).repeat(2, 1) * 1.5 / 255  # 2-px cells, +-1.5 levels
+    marked = (np.clip(host + mark[..., None], 0, 1) * 255).round().astype(np.uint8)
+    for quality in (90, 75, 50):
+        codec = ("JPEG", quality, 2)
+        saved = _codec_round_trip(marked, codec).astype(np.float64) / 255
+        residual = (saved - _codec_round_trip((host * 255).round().astype(np.uint8), codec) / 255).mean(2)
+        estimate = dequantized_luma(saved, host, jpeg_luma_table(codec), 2.0)
+        cosine = lambda r: float((r * mark).sum() / np.linalg.norm(r) / np.linalg.norm(mark))  # noqa: E731
+        assert cosine(estimate) > 1.15 * cosine(residual) > 0.2
+        # No key in it: the estimate of a picture without the mark carries none of it.
+        clean = _codec_round_trip((host * 255).round().astype(np.uint8), codec).astype(np.float64) / 255
+        assert abs(cosine(dequantized_luma(clean, host, jpeg_luma_table(codec), 2.0))) < 0.05
+    resized = Image.fromarray((saved * 255).round().astype(np.uint8)).resize((80, 80)).resize((96, 96))
+    assert dequantized_luma(np.asarray(resized) / 255.0, host, jpeg_luma_table(codec), 2.0) is None
+    assert jpeg_luma_table(("WEBP", 80, None)) is None

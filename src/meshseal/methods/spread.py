@@ -49,10 +49,14 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         pixel = found.fragments.pixel.index_select(0, found.keep)
         sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
         expected = found.expected if sampled is None else sampled.expected
+        dequantized = None
         if compression:  # the prediction as the picture's codec saved it (`reading.compression`)
-            from ..reading.compression import recompressed
+            from ..reading import compression as codecs
 
-            expected, _ = recompressed(image, expected, pixel)
+            before = expected
+            expected, chosen = codecs.recompressed(image, expected, pixel)
+            if model.config.read_brightness < 0 or not brightness:  # the mark through a JPEG's quantiser
+                dequantized = codecs.dequantized(image, before, pixel, chosen)
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
         textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
         usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
@@ -82,6 +86,8 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             gain = gain * ratio
         else:
             along = ((found.seen - expected) * colour).sum(1)
+            if dequantized is not None:  # a grey mark m in luminance is m in every channel
+                along = torch.where(dequantized.isnan(), along, dequantized * colour.sum())
         whitened = torch.zeros_like(along)
         if bool(usable.any()):
             options = {"highpass": config.read_highpass, "window": config.read_window} | (whitening or {})

@@ -134,3 +134,94 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     if known is None:
         _remember(image, [[] if codec is None else [codec] for codec in chosen])
     return out, chosen
+
+
+# --- the mark read through JPEG's quantiser ------------------------------------------------------------
+#
+# Where the codec is a JPEG of known tables, the residual `picture - codec(prediction)` is a poor estimate
+# of the mark: a DCT coefficient of the picture is the prediction's coefficient c plus the mark m,
+# rounded to a multiple of the table's step D, so the difference is 0 or +-D, a vote as loud as the step
+# whose sign follows m only where c + m crossed a rounding edge. What the picture says about m is the
+# interval it puts c + m in: [(q - 1/2) D, (q + 1/2) D]. Under a Gaussian prior m ~ N(0, sigma^2) (the
+# mark and the prediction's own error) the estimate with the least squared error is the mean of that
+# prior truncated to the interval: near an edge it is m's sign even where the rounding did not cross,
+# and never larger than the interval allows. The estimates, transformed back to pixels, replace the
+# residual in luminance. They depend on the picture and the prediction only, never on a key.
+
+DEQUANTIZE_SIGMA = 2.0  # the prior's standard deviation per coefficient, in 8-bit levels (0: off)
+ALIGNED_BELOW = 0.09  # the mean distance of a JPEG's non-zero coefficients to their steps' multiples (any other picture: 0.1-0.29)
+LUMA = (0.299, 0.587, 0.114)
+
+
+def jpeg_luma_table(codec) -> np.ndarray | None:
+    """The 8 x 8 luminance quantisation steps (natural order) of a JPEG candidate of CODECS, or None."""
+    if codec is None or codec[0] != "JPEG":
+        return None
+    listed_jpeg(("JPEG", {}, -1))  # fills _TABLES
+    tables, _ = _TABLES[codec]
+    return np.asarray(tables[0], dtype=np.float64).reshape(8, 8)
+
+
+def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndarray, sigma: float) -> np.ndarray | None:
+    """The mark in luminance (H, W), in [0, 1] units, estimated from a JPEG `picture` (H, W, 3) in [0, 1]
+    and the unmarked `prediction` of it (H, W, 3) in [0, 1], not rounded, through the luminance
+    steps `table` (8, 8): per 8 x 8 block (aligned with the picture's top-left corner, as JPEG's), the
+    truncated-Gaussian mean of prediction-to-picture differences of each DCT coefficient (see above).
+    None where the picture's coefficients do not sit on the table's steps (ALIGNED_BELOW)."""
+    from scipy.fft import dctn, idctn
+    from scipy.special import log_ndtr
+
+    height, width = picture.shape[:2]
+    luma = np.asarray(LUMA)
+    rows, cols = -(-height // 8) * 8, -(-width // 8) * 8
+
+    def blocks(image: np.ndarray) -> np.ndarray:
+        y = np.pad(image @ luma * 255.0 - 128.0, ((0, rows - height), (0, cols - width)), mode="edge")
+        return dctn(y.reshape(rows // 8, 8, cols // 8, 8).transpose(0, 2, 1, 3), axes=(2, 3), norm="ortho")
+
+    seen, predicted = blocks(picture.astype(np.float64)), blocks(prediction.astype(np.float64))
+    step = np.broadcast_to(table, seen.shape)
+    level = np.round(seen / step)
+    # A picture these steps did not quantise (a JPEG since resized or shifted, say) has coefficients
+    # anywhere between the steps' multiples: no estimate.
+    judged = (step >= 4.0) & (level != 0)
+    if not judged.any() or float(np.abs(seen / step - level)[judged].mean()) > ALIGNED_BELOW:
+        return None
+    a, b = ((level - 0.5) * step - predicted) / sigma, ((level + 0.5) * step - predicted) / sigma
+    # The truncated normal's mean, sigma (phi(a) - phi(b)) / (Phi(b) - Phi(a)), computed on the side of
+    # the interval away from the prior's mode so that a far interval neither underflows nor cancels.
+    flip = a > 0
+    a, b = np.where(flip, -b, a), np.where(flip, -a, b)
+    log_mass = log_ndtr(b) + np.log1p(-np.exp(np.minimum(log_ndtr(a) - log_ndtr(b), -1e-12)))
+    density = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_mass) - np.exp(-0.5 * b * b - 0.5 * np.log(2 * np.pi) - log_mass)
+    mean = sigma * np.where(flip, -density, density)
+    mark = idctn(mean, axes=(2, 3), norm="ortho").transpose(0, 2, 1, 3).reshape(rows, cols)
+    return mark[:height, :width] / 255.0
+
+
+def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, chosen: list,
+                sigma: float | None = None) -> torch.Tensor | None:
+    """The mark in luminance at the object's pixels (P,) of pictures `image` (B, 3, H, W) whose codec
+    (`chosen`, as `recompressed` found them) is a JPEG of known tables, from the prediction `expected`
+    (P, 3) before the codec (`dequantized_luma`); NaN at the pixels of other pictures. None where no
+    picture is such a JPEG or `sigma` (default DEQUANTIZE_SIGMA) is 0."""
+    sigma = DEQUANTIZE_SIGMA if sigma is None else sigma
+    tables = [jpeg_luma_table(codec) for codec in chosen]
+    if sigma <= 0 or all(t is None for t in tables):
+        return None
+    n_images, _, height, width = image.shape
+    flat = image.detach().permute(0, 2, 3, 1).reshape(-1, 3).cpu().double()
+    canvas = flat.clone()
+    canvas[pixel.cpu()] = expected.detach().cpu().double().clamp(0, 1)
+    out = torch.full((len(pixel),), float("nan"), dtype=torch.float64)
+    owner = (pixel // (height * width)).cpu()
+    for index, table in enumerate(tables):
+        mine = owner == index
+        if table is None or not bool(mine.any()):
+            continue
+        shape = (n_images, height, width, 3)
+        mark = dequantized_luma(flat.reshape(shape)[index].numpy(), canvas.reshape(shape)[index].numpy(), table, sigma)
+        if mark is None:
+            continue
+        out[mine] = torch.from_numpy(mark.reshape(-1)[(pixel[mine] % (height * width)).cpu().numpy()])
+    return out.to(expected)
