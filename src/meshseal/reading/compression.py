@@ -167,9 +167,9 @@ def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndar
     and the unmarked `prediction` of it (H, W, 3) in [0, 1], not rounded, through the luminance
     steps `table` (8, 8): per 8 x 8 block (aligned with the picture's top-left corner, as JPEG's), the
     truncated-Gaussian mean of prediction-to-picture differences of each DCT coefficient (see above).
-    None where the picture's coefficients do not sit on the table's steps (ALIGNED_BELOW)."""
+    None where the picture's coefficients do not sit on the table's steps (ALIGNED_BELOW). (A prior fitted
+    per frequency to the object's blocks by EM was measured and read the same: docs/reading.md.)"""
     from scipy.fft import dctn, idctn
-    from scipy.special import log_ndtr
 
     height, width = picture.shape[:2]
     luma = np.asarray(LUMA)
@@ -187,16 +187,24 @@ def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndar
     judged = (step >= 4.0) & (level != 0)
     if not judged.any() or float(np.abs(seen / step - level)[judged].mean()) > ALIGNED_BELOW:
         return None
-    a, b = ((level - 0.5) * step - predicted) / sigma, ((level + 0.5) * step - predicted) / sigma
-    # The truncated normal's mean, sigma (phi(a) - phi(b)) / (Phi(b) - Phi(a)), computed on the side of
-    # the interval away from the prior's mode so that a far interval neither underflows nor cancels.
+    lower, upper = (level - 0.5) * step - predicted, (level + 0.5) * step - predicted
+    mean = sigma * _truncated_mean(lower / sigma, upper / sigma)
+    mark = idctn(mean, axes=(2, 3), norm="ortho").transpose(0, 2, 1, 3).reshape(rows, cols)
+    return mark[:height, :width] / 255.0
+
+
+def _truncated_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """E[X] of X ~ N(0, 1) given a <= X <= b, elementwise: (phi(a) - phi(b)) / (Phi(b) - Phi(a)),
+    computed on the side of the interval away from the mode so that a far interval neither
+    underflows nor cancels."""
+    from scipy.special import log_ndtr
+
     flip = a > 0
     a, b = np.where(flip, -b, a), np.where(flip, -a, b)
     log_mass = log_ndtr(b) + np.log1p(-np.exp(np.minimum(log_ndtr(a) - log_ndtr(b), -1e-12)))
-    density = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_mass) - np.exp(-0.5 * b * b - 0.5 * np.log(2 * np.pi) - log_mass)
-    mean = sigma * np.where(flip, -density, density)
-    mark = idctn(mean, axes=(2, 3), norm="ortho").transpose(0, 2, 1, 3).reshape(rows, cols)
-    return mark[:height, :width] / 255.0
+    at_a = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_mass)
+    at_b = np.exp(-0.5 * b * b - 0.5 * np.log(2 * np.pi) - log_mass)
+    return np.where(flip, at_b - at_a, at_a - at_b)
 
 
 def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, chosen: list,
