@@ -198,3 +198,28 @@ def test_a_jpegs_quantiser_says_more_of_a_grey_mark_than_its_residual_and_nothin
     resized = Image.fromarray((saved * 255).round().astype(np.uint8)).resize((80, 80)).resize((96, 96))
     assert dequantized_luma(np.asarray(resized) / 255.0, host, jpeg_luma_table(codec), 2.0) is None
     assert jpeg_luma_table(("WEBP", 80, None)) is None
+
+
+def test_a_jpeg_file_of_an_unlisted_quality_is_read_through_its_own_steps(tmp_path, monkeypatch):
+    """JPEG 92 4:4:4 is none of the searched codecs: the quantiser read uses the file's own luminance
+    steps (`pictures.file_luma_table`), which the picture's coefficients sit on."""
+    from meshseal.reading import compression
+    from meshseal.reading.pictures import load_picture_and_codecs
+
+    rng = np.random.default_rng(1)
+    pixels = (np.clip(0.5 + 0.2 * rng.standard_normal((64, 64, 3)), 0, 1) * 255).astype(np.uint8)
+    Image.fromarray(pixels).save(tmp_path / "p.jpg", quality=92, subsampling=0)
+    with Image.open(tmp_path / "p.jpg") as saved:
+        steps = np.asarray(saved.quantization[0], dtype=np.float64).reshape(8, 8)
+    loaded = load_picture_and_codecs(tmp_path / "p.jpg")
+    assert loaded[3] is None and np.array_equal(loaded[4], steps)  # searched, but its steps known
+    assert load_picture_and_codecs(pixels)[4] is None
+    image = torch.from_numpy(loaded[0]).permute(2, 0, 1)[None].clone()
+    pixel = torch.arange(16 * 64, 48 * 64)
+    expected = image[0].permute(1, 2, 0).reshape(-1, 3)[pixel]
+    seen = []
+    monkeypatch.setattr(compression, "dequantized_luma", lambda *a: seen.append(a[2]) or np.zeros((64, 64)))
+    compression.expect_luma(image, [steps])
+    assert compression.dequantized(image, expected, pixel, [("JPEG", 90, 0)]) is not None
+    assert np.array_equal(seen[0], steps)
+    assert compression.dequantized(image.clone(), expected, pixel, [None]) is None  # no file steps, no JPEG found

@@ -207,14 +207,36 @@ def _truncated_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(flip, at_b - at_a, at_a - at_b)
 
 
+_LUMA: list = []  # (pictures, their version, each one's luminance steps from its file or None)
+
+
+def expect_luma(image: torch.Tensor, tables: list) -> None:
+    """Before pictures `image` (B, 3, H, W) are read: per picture, the luminance steps (8, 8) its JPEG
+    file was saved with (`pictures.file_luma_table`), or None; `dequantized` reads through them rather
+    than through the steps of the codec the search found (a quality or an encoder not listed)."""
+    if len(tables) != image.shape[0]:
+        raise ValueError(f"expected tables for {image.shape[0]} pictures, got {len(tables)}")
+    _LUMA[:] = [(image, image._version, list(tables))] + [entry for entry in _LUMA if entry[0] is not image][:3]
+
+
+def _own_luma(image: torch.Tensor) -> list | None:
+    for kept, version, tables in _LUMA:
+        if (kept.data_ptr(), kept.shape, kept.dtype, version) == (image.data_ptr(), image.shape, image.dtype,
+                                                                  image._version):
+            return tables
+    return None
+
+
 def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, chosen: list,
                 sigma: float | None = None) -> torch.Tensor | None:
-    """The mark in luminance at the object's pixels (P,) of pictures `image` (B, 3, H, W) whose codec
-    (`chosen`, as `recompressed` found them) is a JPEG of known tables, from the prediction `expected`
+    """The mark in luminance at the object's pixels (P,) of pictures `image` (B, 3, H, W) saved as a JPEG
+    of known steps (their file's, `expect_luma`, else those of the codec `recompressed` found: `chosen`),
+    from the prediction `expected`
     (P, 3) before the codec (`dequantized_luma`); NaN at the pixels of other pictures. None where no
     picture is such a JPEG or `sigma` (default DEQUANTIZE_SIGMA) is 0."""
     sigma = DEQUANTIZE_SIGMA if sigma is None else sigma
-    tables = [jpeg_luma_table(codec) for codec in chosen]
+    own = _own_luma(image) or [None] * len(chosen)
+    tables = [table if table is not None else jpeg_luma_table(codec) for table, codec in zip(own, chosen)]
     if sigma <= 0 or all(t is None for t in tables):
         return None
     n_images, _, height, width = image.shape

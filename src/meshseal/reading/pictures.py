@@ -76,20 +76,33 @@ def file_codecs(image) -> list | None:
     return None
 
 
-def load_picture_and_codecs(image) -> tuple[np.ndarray, np.ndarray | None, str | None, list | None]:
-    """`load_picture`, and the codecs its file says saved it (`file_codecs`; None for arrays, tensors
-    and files that do not say)."""
+def file_luma_table(image) -> np.ndarray | None:
+    """A JPEG file's own luminance quantisation steps (8, 8), natural order (upright 3-component
+    pictures, as `file_codecs`), or None: what `compression.dequantized` reads the picture through."""
+    from ..mesh.validate import JPEG_CODEC_KEY, _jpeg_codec
+
+    if image.format != "JPEG":
+        return None
+    codec = image.info[JPEG_CODEC_KEY] if JPEG_CODEC_KEY in image.info else _jpeg_codec(image)
+    if codec is None or 0 not in codec[1] or len(codec[1][0]) != 64:
+        return None
+    return np.asarray(codec[1][0], dtype=np.float64).reshape(8, 8)
+
+
+def load_picture_and_codecs(image) -> tuple[np.ndarray, np.ndarray | None, str | None, list | None, np.ndarray | None]:
+    """`load_picture`, the codecs its file says saved it (`file_codecs`; None for arrays, tensors
+    and files that do not say) and a JPEG file's luminance steps (`file_luma_table`, else None)."""
     from PIL import Image
 
     from ..mesh.validate import read_image
 
     name = picture_name(image)
-    codecs = None
+    codecs, luma = None, None
     if isinstance(image, (str, Path)):
         image = read_image(Path(image), name, MIN_PICTURE_SIDE)
     if isinstance(image, Image.Image):
         camera_text = image.info.get(CAMERA_KEY)
-        codecs = file_codecs(image)
+        codecs, luma = file_codecs(image), file_luma_table(image)
         pixels, alpha = _pil_to_arrays(image, name)
         camera_text = camera_text if isinstance(camera_text, str) else None
     else:
@@ -111,7 +124,7 @@ def load_picture_and_codecs(image) -> tuple[np.ndarray, np.ndarray | None, str |
         raise MeshsealError(f"{name}: picture is {width}x{height} pixels, too small (at least "
                             f"{MIN_PICTURE_SIDE} pixels a side)")
     mask = alpha > 0.5 if alpha is not None and alpha.min() < 0.5 else None
-    return pixels, mask, camera_text, codecs
+    return pixels, mask, camera_text, codecs, luma
 
 
 def camera_from_metadata(text: str, device, name: str = "picture"):

@@ -82,7 +82,7 @@ class Reader:
         """One picture's evidence; `original` from `Method.prepare`, None for blind methods. The camera
         comes from `camera` (one `Cameras`, canonical frame: it overrides the rest), else the picture's
         metadata (unless `register`), else registration assuming a vertical field of view `fov_y`."""
-        pixels, alpha, camera_text, codecs = load_picture_and_codecs(image)
+        pixels, alpha, camera_text, codecs, luma = load_picture_and_codecs(image)
         given = camera is not None
         from_metadata = original is not None and camera_text is not None and not register and not given
         if alpha is not None:
@@ -93,7 +93,7 @@ class Reader:
             if inner is not None:  # a picture within a picture (a screenshot): read the inner one, in its own frame
                 top, bottom, left, right = inner
                 pixels = np.ascontiguousarray(pixels[top:bottom, left:right])
-                codecs = None  # its blocks no longer lie on the file's 8x8 grid
+                codecs, luma = None, None  # its blocks no longer lie on the file's 8x8 grid
             mask, background = object_mask(pixels, trim=not (given or from_metadata))
         if int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
             what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"
@@ -107,7 +107,7 @@ class Reader:
             height, width = pixels.shape[:2]
             corners = clip_to_screen(camera.world_to_clip(original.positions, width / height), height, width)
             box = tuple(float(v) for v in box_from_points(corners.reshape(-1, 2), height, width)[0])
-            evidence = self.method.evidence(original, self._expect_codecs(tensor.clamp(0, 1), codecs), camera)
+            evidence = self.method.evidence(original, self._expect_codecs(tensor.clamp(0, 1), codecs, luma), camera)
             if from_metadata:  # kept for `why_not`: does the picture show this mesh where its camera says?
                 return Reading(evidence, box, "metadata", None, camera,
                                object_mask=torch.from_numpy(np.ascontiguousarray(mask > 0.5)))
@@ -126,20 +126,23 @@ class Reader:
                                         fov_y=fov_y, recut=recut)
         camera = found.camera.to(self.device)  # a camera is the same for the picture at any size
         # one tensor for this reading and the second look: the codec found once
-        seen = self._expect_codecs(tensor.clamp(0, 1), codecs)
+        seen = self._expect_codecs(tensor.clamp(0, 1), codecs, luma)
         evidence = self.method.evidence(original, seen, camera)
         second_look = (seen.cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
         return Reading(evidence, tuple(float(v) / factor for v in found.box), "registered", found.iou, camera,
                        second_look=second_look)
 
     @staticmethod
-    def _expect_codecs(seen: torch.Tensor, codecs: list | None) -> torch.Tensor:
+    def _expect_codecs(seen: torch.Tensor, codecs: list | None, luma=None) -> torch.Tensor:
         """`seen`, with the codecs its file says saved it noted for the codec step (`compression.expect`:
-        a JPEG file's own tables, none for a PNG `meshseal render` wrote); None: the step searches."""
-        if codecs is not None:
-            from .compression import expect
+        a JPEG file's own tables, none for a PNG `meshseal render` wrote; None: the step searches), and
+        a JPEG file's luminance steps for reading the mark through them (`compression.expect_luma`)."""
+        from . import compression
 
-            expect(seen, [codecs])
+        if codecs is not None:
+            compression.expect(seen, [codecs])
+        if luma is not None:
+            compression.expect_luma(seen, [luma])
         return seen
 
     def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original):
