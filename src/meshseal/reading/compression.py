@@ -162,24 +162,33 @@ def jpeg_luma_table(codec) -> np.ndarray | None:
     return np.asarray(tables[0], dtype=np.float64).reshape(8, 8)
 
 
-def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndarray, sigma: float) -> np.ndarray | None:
+def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndarray, sigma: float,
+                     inside: np.ndarray | None = None) -> np.ndarray | None:
     """The mark in luminance (H, W), in [0, 1] units, estimated from a JPEG `picture` (H, W, 3) in [0, 1]
     and the unmarked `prediction` of it (H, W, 3) in [0, 1], not rounded, through the luminance
     steps `table` (8, 8): per 8 x 8 block (aligned with the picture's top-left corner, as JPEG's), the
-    truncated-Gaussian mean of prediction-to-picture differences of each DCT coefficient (see above).
-    None where the picture's coefficients do not sit on the table's steps (ALIGNED_BELOW). (A prior fitted
-    per frequency to the object's blocks by EM was measured and read the same: docs/reading.md.)"""
+    truncated-Gaussian mean of prediction-to-picture differences of each DCT coefficient (see above);
+    only the blocks that hold a pixel of `inside` (H, W) bool (default all), 0 elsewhere. None where
+    the picture's coefficients do not sit on the table's steps (ALIGNED_BELOW). (A prior fitted per
+    frequency to the object's blocks by EM was measured and read the same: docs/reading.md.)"""
     from scipy.fft import dctn, idctn
 
     height, width = picture.shape[:2]
     luma = np.asarray(LUMA)
     rows, cols = -(-height // 8) * 8, -(-width // 8) * 8
+    pad = ((0, rows - height), (0, cols - width))
 
-    def blocks(image: np.ndarray) -> np.ndarray:
-        y = np.pad(image @ luma * 255.0 - 128.0, ((0, rows - height), (0, cols - width)), mode="edge")
-        return dctn(y.reshape(rows // 8, 8, cols // 8, 8).transpose(0, 2, 1, 3), axes=(2, 3), norm="ortho")
+    def tiles(image: np.ndarray) -> np.ndarray:  # (rows / 8, cols / 8, 8, 8)
+        return image.reshape(rows // 8, 8, cols // 8, 8).transpose(0, 2, 1, 3)
 
-    seen, predicted = blocks(picture.astype(np.float64)), blocks(prediction.astype(np.float64))
+    touched = np.ones((rows // 8, cols // 8), dtype=bool) if inside is None else \
+        tiles(np.pad(inside, pad)).any(axis=(2, 3))
+
+    def blocks(image: np.ndarray) -> np.ndarray:  # the touched blocks' DCT (N, 8, 8)
+        y = np.pad(image.astype(np.float64) @ luma * 255.0 - 128.0, pad, mode="edge")
+        return dctn(tiles(y)[touched], axes=(1, 2), norm="ortho")
+
+    seen, predicted = blocks(picture), blocks(prediction)
     step = np.broadcast_to(table, seen.shape)
     level = np.round(seen / step)
     # A picture these steps did not quantise (a JPEG since resized or shifted, say) has coefficients
@@ -189,8 +198,9 @@ def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndar
         return None
     lower, upper = (level - 0.5) * step - predicted, (level + 0.5) * step - predicted
     mean = sigma * _truncated_mean(lower / sigma, upper / sigma)
-    mark = idctn(mean, axes=(2, 3), norm="ortho").transpose(0, 2, 1, 3).reshape(rows, cols)
-    return mark[:height, :width] / 255.0
+    mark = np.zeros((rows // 8, cols // 8, 8, 8))
+    mark[touched] = idctn(mean, axes=(1, 2), norm="ortho")
+    return mark.transpose(0, 2, 1, 3).reshape(rows, cols)[:height, :width] / 255.0
 
 
 def _truncated_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -250,7 +260,10 @@ def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor
         if table is None or not bool(mine.any()):
             continue
         shape = (n_images, height, width, 3)
-        mark = dequantized_luma(flat.reshape(shape)[index].numpy(), canvas.reshape(shape)[index].numpy(), table, sigma)
+        inside = np.zeros(height * width, dtype=bool)
+        inside[(pixel[mine] % (height * width)).cpu().numpy()] = True
+        mark = dequantized_luma(flat.reshape(shape)[index].numpy(), canvas.reshape(shape)[index].numpy(), table, sigma,
+                                inside.reshape(height, width))
         if mark is None:
             continue
         out[mine] = torch.from_numpy(mark.reshape(-1)[(pixel[mine] % (height * width)).cpu().numpy()])
