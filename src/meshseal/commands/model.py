@@ -386,7 +386,7 @@ def run_detect(args) -> int:
 
         progress = tqdm(total=len(pictures), unit="picture", file=sys.stderr)
     workers = args.workers or (min(available_cores(), 8) if len(pictures) >= MANY_PICTURES else 1)
-    with closing(_readings(args, watermarker, original, pictures, min(workers, len(pictures)))) as read:
+    with closing(_readings(args, watermarker, original, pictures, min(workers, len(pictures)), expect)) as read:
         for path, outcome, error in read:  # closing: the worker pool ends even if a line fails
             failed += _report(args, watermarker, original, path, outcome, error, progress, key, expect, readings,
                               decisions)
@@ -435,12 +435,11 @@ def _report(args, watermarker, original, path, outcome, error, progress, key, ex
     return 0
 
 
-def _readings(args, watermarker, original, paths: list[Path], workers: int):
-    """(path, Detection (with --pool: its reading), error text) of each picture, in order. With more
-    than one worker, spawned processes (one thread each) load the model and the original once and
-    detect in parallel; a pool's decision stays with the caller."""
-    key, expect = _key(args), _expected(args)
-    task = (args.register, args.fov, key, expect, args.pool)
+def _readings(args, watermarker, original, paths: list[Path], workers: int, expect=None):
+    """(path, Detection (with --pool: its reading), error text) of each picture, in order, tested for
+    `expect` (`_expected`). With more than one worker, spawned processes (one thread each) load the
+    model and the original once and detect in parallel; a pool's decision stays with the caller."""
+    task = (args.register, args.fov, _key(args), expect, args.pool)
     if workers <= 1:
         yield from (_read_one(watermarker, original, path, *task) for path in paths)
         return
