@@ -110,7 +110,7 @@ def _chart_material(mesh: Mesh, material: int, parts: list) -> tuple | None:
         return None
     density = _density(mesh, mapped, height, width)
     while True:
-        blocks = [_unwrap(mesh, faces, density) for _, _, faces, _ in groups]
+        blocks = _unwrap(mesh, [faces for _, _, faces, _ in groups], density)
         places, atlas_width, atlas_height = _shelves([(w, h) for (h, w), _, _, _ in blocks], width)
         if max(atlas_width, atlas_height) <= MAX_SIDE:
             break
@@ -247,23 +247,20 @@ def _row(row: torch.Tensor, width: int) -> torch.Tensor:
     return torch.cat([row, row[-1:].expand(width - len(row), -1)]) if width > len(row) else row
 
 
-def _unwrap(mesh: Mesh, faces: torch.Tensor,
-            density: float) -> tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
-    """One part's faces of one colour unwrapped by xatlas at `density` texels per unit length: the
-    size (h, w) of the block that the colour fills (so that no filtering between its charts changes a colour), the new
-    vertices' sources (indices into the faces' sorted vertices), the faces on them, and their texel
-    positions (x right, y down) in the block."""
-    import xatlas
+def _unwrap(mesh: Mesh, groups: list[torch.Tensor],
+            density: float) -> list[tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]]:
+    """Each group of faces (one part's faces of one colour) unwrapped by xatlas at `density` texels
+    per unit length (in a child process: `methods.unwrap`): the size (h, w) of the block that the
+    colour fills (so that no filtering between its charts changes a colour), the new vertices'
+    sources (indices into the faces' sorted vertices), the faces on them, and their texel positions
+    (x right, y down) in the block."""
+    from .unwrap import unwrap_many
 
-    used, local = torch.unique(mesh.faces[faces].reshape(-1), return_inverse=True)
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(mesh.positions[used].double().numpy(), local.reshape(-1, 3).numpy().astype(np.uint32))
-    options = xatlas.PackOptions()
-    options.padding, options.texels_per_unit, options.bilinear = 1, density, True
-    atlas.generate(xatlas.ChartOptions(), options)
-    sources, indices, uvs = atlas[0]
-    texels = np.stack([uvs[:, 0] * atlas.width, (1 - uvs[:, 1]) * atlas.height], 1)
-    return (atlas.height, atlas.width), sources.astype(np.int64), indices.astype(np.int64), texels
+    jobs = []
+    for faces in groups:
+        used, local = torch.unique(mesh.faces[faces].reshape(-1), return_inverse=True)
+        jobs.append((mesh.positions[used].double().numpy(), local.reshape(-1, 3).numpy().astype(np.uint32), density))
+    return unwrap_many(jobs)
 
 
 def _shelves(sizes: list[tuple[int, int]], width: int) -> tuple[list[tuple[int, int]], int, int]:
