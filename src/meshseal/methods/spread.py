@@ -49,20 +49,20 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         pixel = found.fragments.pixel.index_select(0, found.keep)
         sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
         expected = found.expected if sampled is None else sampled.expected
+        fit = model.config.read_brightness if brightness else -1.0
         dequantized = None
         if compression:  # the prediction as the picture's codec saved it (`reading.compression`)
             from ..reading import compression as codecs
 
             before = expected
             expected, chosen = codecs.recompressed(image, expected, pixel)
-            if model.config.read_brightness < 0 or not brightness:  # the mark through a JPEG's quantiser
+            if fit < 0.0:  # no brightness fit: the residual as it is, a JPEG's read through its quantiser
                 dequantized = codecs.dequantized(image, before, pixel, chosen)
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
         textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
         usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
         colour = encoder.colour.to(image)
         config = model.config
-        fit = config.read_brightness if brightness else -1.0
         if fit == 0.0:
             # Each pixel's own brightness against the prediction (a shadow, one of two coincident sheets
             # lit from behind, a tone curve): taken off along the predicted colour, so the residual

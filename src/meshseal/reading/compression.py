@@ -34,23 +34,28 @@ def listed_jpeg(codec) -> tuple | None:
     picture, yet read the default mark worse than the search's choice (docs/reading.md)."""
     if codec is None:
         return None
+    _, tables, subsampling = codec
+    for candidate, (own, own_subsampling) in _jpeg_tables().items():
+        if own_subsampling == subsampling and own == tables:
+            return candidate
+    return None
+
+
+def _jpeg_tables() -> dict:
+    """Each JPEG candidate's quantization tables and subsampling as Pillow writes them, made once."""
     if not _TABLES:
+        from PIL import Image
+
         blank = np.zeros((16, 16, 3), dtype=np.uint8)
         for candidate in CODECS:
             if candidate[0] != "JPEG":
                 continue
-            from PIL import Image
-
             buffer = io.BytesIO()
             Image.fromarray(blank).save(buffer, format="JPEG", quality=candidate[1], subsampling=candidate[2])
             with Image.open(io.BytesIO(buffer.getvalue())) as saved:
                 tables = {int(k): list(v) for k, v in dict(saved.quantization).items()}
             _TABLES[candidate] = (tables, candidate[2])
-    _, tables, subsampling = codec
-    for candidate, (own, own_subsampling) in _TABLES.items():
-        if own_subsampling == subsampling and own == tables:
-            return candidate
-    return None
+    return _TABLES
 
 
 def _codec_round_trip(picture: np.ndarray, codec) -> np.ndarray:
@@ -71,11 +76,13 @@ _FOUND: list = []  # (picture, its version, the candidate codecs per image): a p
 # before the first reading where the picture's file says which codec saved it
 
 
-def _known(image: torch.Tensor):
-    for kept, version, candidates in _FOUND:
+def _known(image: torch.Tensor, registry: list | None = None):
+    """What `registry` (default _FOUND: (pictures, their version, one entry a picture)) keeps for the
+    tensor `image`, as long as it is unchanged; None if nothing."""
+    for kept, version, entries in (_FOUND if registry is None else registry):
         if (kept.data_ptr(), kept.shape, kept.dtype, version) == (image.data_ptr(), image.shape, image.dtype,
                                                                   image._version):
-            return candidates
+            return entries
     return None
 
 
@@ -157,8 +164,7 @@ def jpeg_luma_table(codec) -> np.ndarray | None:
     """The 8 x 8 luminance quantisation steps (natural order) of a JPEG candidate of CODECS, or None."""
     if codec is None or codec[0] != "JPEG":
         return None
-    listed_jpeg(("JPEG", {}, -1))  # fills _TABLES
-    tables, _ = _TABLES[codec]
+    tables, _ = _jpeg_tables()[codec]
     return np.asarray(tables[0], dtype=np.float64).reshape(8, 8)
 
 
@@ -229,14 +235,6 @@ def expect_luma(image: torch.Tensor, tables: list) -> None:
     _LUMA[:] = [(image, image._version, list(tables))] + [entry for entry in _LUMA if entry[0] is not image][:3]
 
 
-def _own_luma(image: torch.Tensor) -> list | None:
-    for kept, version, tables in _LUMA:
-        if (kept.data_ptr(), kept.shape, kept.dtype, version) == (image.data_ptr(), image.shape, image.dtype,
-                                                                  image._version):
-            return tables
-    return None
-
-
 def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, chosen: list,
                 sigma: float | None = None) -> torch.Tensor | None:
     """The mark in luminance at the object's pixels (P,) of pictures `image` (B, 3, H, W) saved as a JPEG
@@ -245,7 +243,7 @@ def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor
     (P, 3) before the codec (`dequantized_luma`); NaN at the pixels of other pictures. None where no
     picture is such a JPEG or `sigma` (default DEQUANTIZE_SIGMA) is 0."""
     sigma = DEQUANTIZE_SIGMA if sigma is None else sigma
-    own = _own_luma(image) or [None] * len(chosen)
+    own = _known(image, _LUMA) or [None] * len(chosen)
     tables = [table if table is not None else jpeg_luma_table(codec) for table, codec in zip(own, chosen)]
     if sigma <= 0 or all(t is None for t in tables):
         return None
