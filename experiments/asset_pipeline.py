@@ -1,10 +1,11 @@
 """The asset's road: what an engine import or a re-export does to a marked mesh, then one picture read.
 
 Each mesh (the textured fixtures, and the first N test meshes of --data) is marked as `meshseal embed`
-marks it (within the FLIP budget) by each model, then put through one asset-pipeline step at a time:
-its textures re-saved as JPEG 90 (Pillow, 4:2:0), halved (bicubic), block-compressed as BC1 or BC7
-(`etcpak` to encode, `texture2ddecoder` to decode), the mesh saved as OBJ and converted to GLB through
-trimesh and read back (`obj_glb`), or decimated to half its faces keeping its UVs (`mesh.simplify`).
+marks it (within the FLIP budget) by each model, then put through one asset attack at a time
+(`meshseal.evaluation.asset_attacks`, the suite `meshseal eval --attacks` runs on test meshes): its
+textures re-saved as JPEG 90 (Pillow, 4:2:0), halved (bicubic), block-compressed as BC1 or BC7
+(`etcpak` to encode, `texture2ddecoder` to decode), the file converted OBJ <-> GLB through trimesh and
+read back (`obj_glb`), or decimated to half its faces keeping its UVs (`mesh.simplify`).
 The result is rendered by our renderer from one seeded view (256^2, 8-bit) and read against the
 unmarked original with the camera known. Reports detected / exact message / named at FPR 1e-6 per step
 (named: the owner's test of the message it embedded, `detect --expect-id`, on the same reading), by kind
@@ -17,18 +18,16 @@ of asset (fixtures with their own textures; test meshes, whose textures the data
 from __future__ import annotations
 
 import argparse
-import io
-import tempfile
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
 import meshseal
 from meshseal.data.dataset import MeshDataset
-from meshseal.mesh import normalize, simplify, to_z_up
+from meshseal.evaluation.asset_attacks import ASSET_ATTACKS, apply
+from meshseal.mesh import to_z_up
 from meshseal.render import MeshBatch, MeshRenderer
 from meshseal.render.views import sample_views
 from meshseal.training.finetune import mesh_from_item
@@ -36,82 +35,20 @@ from meshseal.training.finetune import mesh_from_item
 FIXTURES = Path(__file__).resolve().parents[1] / "tests" / "fixtures"
 FIXTURE_FILES = ["bunny.glb", "suzanne.glb", "multi_material.glb", "teapot/teapot.obj", "sh3d_crate/crate.obj",
                  "sh3d_deckChair/deckChair.obj"]
-STEPS = ["none", "jpeg90", "half", "bc1", "bc7", "obj_glb", "decimate"]
-
-
-def _textures(mesh, change):
-    out = mesh.copy()
-    for material in out.materials:
-        if material.texture is not None:
-            pixels = (material.texture.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-            material.texture = torch.from_numpy(change(pixels).astype(np.float32) / 255.0)
-    return out
-
-
-def _jpeg(pixels):
-    buffer = io.BytesIO()
-    Image.fromarray(pixels).save(buffer, format="JPEG", quality=90)
-    return np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB"))
-
-
-def _half(pixels):
-    height, width = pixels.shape[:2]
-    return np.asarray(Image.fromarray(pixels).resize((max(1, width // 2), max(1, height // 2)), Image.BICUBIC))
-
-
-def _block(kind):
-    import etcpak
-    import texture2ddecoder
-
-    def change(pixels):
-        height, width = pixels.shape[:2]
-        padded = np.pad(pixels, ((0, -height % 4), (0, -width % 4), (0, 0)), mode="edge")
-        rgba = np.concatenate([padded, np.full(padded.shape[:2] + (1,), 255, np.uint8)], axis=2)
-        h, w = rgba.shape[:2]
-        if kind == "bc1":
-            data = etcpak.compress_bc1(rgba.tobytes(), w, h)
-            decoded = texture2ddecoder.decode_bc1(data, w, h)
-        else:
-            data = etcpak.compress_bc7(rgba.tobytes(), w, h, None)
-            decoded = texture2ddecoder.decode_bc7(data, w, h)
-        bgra = np.frombuffer(decoded, np.uint8).reshape(h, w, 4)
-        return np.ascontiguousarray(bgra[:height, :width, [2, 1, 0]])
-    return change
-
-
-def _obj_glb(mesh):
-    """Saved in its own format (GLB for a mesh made in memory), converted by trimesh to the other one
-    (OBJ <-> GLB) and read back."""
-    import trimesh
-
-    suffix = mesh.source.path.suffix.lower() if mesh.source is not None else ".glb"
-    other = ".obj" if suffix == ".glb" else ".glb"
-    with tempfile.TemporaryDirectory() as folder:
-        meshseal.save_mesh(mesh, Path(folder) / f"a{suffix}")
-        trimesh.load(Path(folder) / f"a{suffix}", force="scene").export(Path(folder) / f"b{other}")
-        converted = meshseal.load_mesh(Path(folder) / f"b{other}")
-    # a mesh made in memory is in the canonical Z-up frame, which a GLB file does not say: keep it
-    return converted if mesh.source is not None else replace(converted, up_axis=mesh.up_axis)
+STEPS = ["none", *ASSET_ATTACKS]
 
 
 def step(mesh, name):
-    if name == "none":
-        return mesh
-    if name == "jpeg90":
-        return _textures(mesh, _jpeg)
-    if name == "half":
-        return _textures(mesh, _half)
-    if name in ("bc1", "bc7"):
-        return _textures(mesh, _block(name))
-    if name == "obj_glb":
-        return _obj_glb(mesh)
-    if name == "decimate":
-        return simplify(mesh, max(4, mesh.n_faces // 2))
-    raise ValueError(name)
+    return mesh if name == "none" else apply(name, mesh, np.random.default_rng(0))
 
 
-def _picture(mesh, cameras, lights) -> np.ndarray:
-    canonical = normalize(to_z_up(replace(mesh, source=None)))
+def _picture(mesh, framed_as, cameras, lights) -> np.ndarray:
+    """`mesh` rendered in the canonical frame of `framed_as` (the marked asset before the attack), so
+    that an attack that moves the bounding box (decimation) does not move the object in the picture."""
+    upright, reference = to_z_up(replace(mesh, source=None)), to_z_up(replace(framed_as, source=None))
+    low, high = reference.positions.min(dim=0).values, reference.positions.max(dim=0).values
+    scale = (high - low).max().clamp_min(1e-12) / 2.0
+    canonical = replace(upright, positions=(upright.positions - (low + high) / 2.0) / scale)
     with torch.no_grad():
         image = MeshRenderer()(MeshBatch.from_mesh(canonical), cameras, lights, 256, 256, (0.5, 0.5, 0.5)).image
     return (image[0].clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
@@ -142,7 +79,7 @@ def main() -> None:
                 tally = counts.setdefault((kind, what), [0, 0, 0, 0])
                 tally[0] += 1
                 try:
-                    picture = _picture(step(marked, what), cameras, lights)
+                    picture = _picture(step(marked, what), marked, cameras, lights)
                     reading = watermarker.read(picture, original, camera=cameras)
                 except meshseal.MeshsealError:
                     continue

@@ -47,7 +47,8 @@ def test_lossy_formats_change_the_picture_a_little_and_brightness_a_lot(picture)
 
 def test_names_parse_and_unknown_ones_are_refused():
     assert attacks.parse("jpeg90, webp80") == ["jpeg90", "webp80"]
-    assert attacks.parse("all") == list(attacks.ATTACKS)
+    assert attacks.parse("all") == [*attacks.ATTACKS, *attacks.ASSET_NAMES]
+    assert attacks.parse("jpeg75,texture_bc1") == ["jpeg75", "texture_bc1"]
     with pytest.raises(ValueError, match="unknown attack"):
         attacks.parse("jpeg90,bogus")
     with pytest.raises(ValueError):

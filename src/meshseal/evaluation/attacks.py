@@ -4,7 +4,8 @@ Each attack is a function of an (H, W, 3) uint8 array and a numpy Generator that
 array (possibly of another size): lossy formats through Pillow's own encoders with their defaults
 (JPEG with 4:2:0 chroma subsampling, as cameras, browsers and image hosts save), resizing as thumbnails
 and re-uploads do, crops, a screenshot of a viewer window, and photometric edits. `ATTACKS` names the
-suite `meshseal eval --attacks` runs; `apply` runs one by name.
+suite `meshseal eval --attacks` runs on pictures (`asset_attacks` has those on the marked asset); `apply`
+runs one by name.
 """
 
 from __future__ import annotations
@@ -105,13 +106,20 @@ ATTACKS: dict[str, Callable] = {
 GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot"}  # the camera of the picture changes
 
 
+# The asset attacks (`asset_attacks.ASSET_ATTACKS`, on the marked mesh before it is rendered), named here
+# so that parsing a list needs neither torch nor the mesh package.
+ASSET_NAMES = ("texture_jpeg90", "texture_half", "texture_bc1", "texture_bc7", "obj_glb", "decimate0.5")
+
+
 def parse(text: str) -> list[str]:
-    """'jpeg90,webp80' or 'all' -> attack names; an unknown name is a ValueError naming the known ones."""
-    names = list(ATTACKS) if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
-    unknown = [name for name in names if name not in ATTACKS]
+    """'jpeg90,webp80,texture_bc1' or 'all' -> attack names (pictures' and assets'); an unknown name is a
+    ValueError naming the known ones."""
+    known = [*ATTACKS, *ASSET_NAMES]
+    names = known if text.strip() == "all" else [t.strip() for t in text.split(",") if t.strip()]
+    unknown = [name for name in names if name not in known]
     if unknown or not names:
         raise ValueError(f"unknown attack(s) {', '.join(unknown) or '(none given)'}: one or more of "
-                         f"{', '.join(ATTACKS)} (comma-separated), or all")
+                         f"{', '.join(known)} (comma-separated), or all")
     return names
 
 

@@ -18,6 +18,8 @@ from ..data.dataset import collate
 from ..models import WatermarkModel
 from ..render import MeshRenderer
 from ..methods.batches import batch_mark_grid, batch_texels_used, charted_item, unpadded
+from .asset_attacks import ASSET_ATTACKS
+from .asset_attacks import apply as attack_asset
 from .attacks import apply as attack_picture
 from .metrics import (
     BUDGET_VIEWS,
@@ -103,6 +105,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     (`detect --expect-ids`: the best match's p-value times the list's length)."""
     from .. import payload
     from ..api import Watermarker
+    from ..mesh import Material, Mesh
     from ..methods.spread import PALETTE_WARNING
     from ..models.spread import palette_share
     from ..reading.registration import pose_error
@@ -164,6 +167,14 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             texture_psnr = float(shown_texture_psnr(texture_marked, texture, used)[0])
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
             kinds = picture_kinds(model.texture_encoder, grid, pictures, shown) if calibrated else [["plain"]] * views
+            asset_pictures = {}  # each asset attack's 8-bit pictures, rendered from the attacked marked asset
+            for number, name in enumerate(n for n in attacked if n in ASSET_ATTACKS):
+                rng = np.random.default_rng([seed, index, 1_000 + number])
+                marked = Mesh(positions[0], normals_marked[0], faces[0], uvs_marked[0],
+                              materials=[Material(texture=texture_marked[0].permute(1, 2, 0))])
+                hit = MeshBatch.from_mesh(attack_asset(name, marked, rng))
+                seen_hit = renderer(hit, cameras, lights, size, size, background).image.clamp(0, 1)
+                asset_pictures[name] = torch.round(seen_hit * 255) / 255
         readings = []
         for view in range(views):
             picture = pictures[view].permute(1, 2, 0).cpu().numpy()
@@ -196,7 +207,10 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                "strength": used_strength})
             for number, name in enumerate(attacked):
                 rng = np.random.default_rng([seed, index, view, number])
-                hit = attack_picture(name, np.round(picture * 255).astype(np.uint8), rng).astype(np.float32) / 255.0
+                if name in ASSET_ATTACKS:  # the picture of the asset after the attack, in the same view and light
+                    hit = asset_pictures[name][view].permute(1, 2, 0).cpu().numpy()
+                else:
+                    hit = attack_picture(name, np.round(picture * 255).astype(np.uint8), rng).astype(np.float32) / 255.0
                 started = time.perf_counter()
                 if register:
                     got = _read_or_none(watermarker, hit, original, register=True)

@@ -650,9 +650,12 @@ def _to_trimesh(mesh: Mesh):
 
     visual = None
     if mesh.uvs is not None:
-        texture = mesh.materials[0].texture
-        image = _tensor_to_image(texture, None) if texture is not None else None
-        material = trimesh.visual.material.SimpleMaterial(image=image, name=mesh.materials[0].name)
+        first = mesh.materials[0]
+        image = _tensor_to_image(first.texture, None) if first.texture is not None else None
+        rgba = lambda colour: np.append(np.round(colour.detach().cpu().clamp(0, 1).numpy() * 255), 255).astype(np.uint8)  # noqa: E731
+        material = trimesh.visual.material.SimpleMaterial(  # its colours, not trimesh's defaults (0.4 each)
+            image=image, diffuse=rgba(first.diffuse), ambient=rgba(first.ambient), specular=rgba(first.specular),
+            glossiness=float(first.shininess), name=first.name)
         visual = trimesh.visual.TextureVisuals(uv=mesh.uvs.detach().cpu().numpy(), material=material)
     return trimesh.Trimesh(vertices=mesh.positions.detach().cpu().numpy(), faces=mesh.faces.cpu().numpy(),
                            vertex_normals=mesh.normals.detach().cpu().numpy(), visual=visual, process=False)

@@ -111,13 +111,38 @@ def decimate(points: np.ndarray, triangles: np.ndarray, target: int, track: bool
     return np.asarray(new_points, dtype=np.float64)[used], remap[new_faces], None if mapping is None else remap[mapping]
 
 
+def _surface_uvs(points: np.ndarray, triangles: np.ndarray, uvs: np.ndarray, new_points: np.ndarray,
+                 mapping: np.ndarray) -> torch.Tensor:
+    """UVs (V', 2) for decimated vertices `new_points`: each the original `uvs` interpolated at the nearest
+    point of the original faces that touch a vertex collapsed into it (`mapping`: original vertex ->
+    new vertex or -1)."""
+    from trimesh.triangles import closest_point, points_to_barycentric
+
+    corner = mapping[triangles]  # (F, 3): the new vertex each face's corners went to
+    pairs = np.unique(np.stack([corner.reshape(-1), np.repeat(np.arange(len(triangles)), 3)], axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] >= 0]
+    vertex, face = pairs[:, 0], pairs[:, 1]
+    corners = points[triangles[face]]
+    nearest = closest_point(corners, new_points[vertex])
+    distance = np.linalg.norm(nearest - new_points[vertex], axis=1)
+    order = np.lexsort((distance, vertex))  # per new vertex, the nearest face first
+    first = order[np.r_[True, vertex[order][1:] != vertex[order][:-1]]]
+    weights = np.clip(points_to_barycentric(corners[first], nearest[first]), 0.0, 1.0)
+    weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
+    result = np.zeros((len(new_points), 2))
+    result[vertex[first]] = np.einsum("fk,fkc->fc", weights, uvs[triangles[face[first]]])
+    return torch.from_numpy(result)
+
+
 def simplify(mesh: Mesh, target_faces: int) -> Mesh:
     """`decimate` a Mesh to at most `target_faces` faces (where the simplifier gets there), keeping its
     attributes.
 
-    UVs and the material of each face follow the surviving vertices (each takes those of one original
-    vertex that collapsed into it); normals are recomputed. A mesh already at or below the target is
-    returned unchanged.
+    The material of each face follows the surviving vertices (each takes that of one original vertex
+    that collapsed into it). A vertex's UV is the original's at the nearest point of the faces around
+    the vertices that collapsed into it (barycentric), so the texture stays where it was on the surface
+    as the vertex moves, and a vertex on a UV seam keeps its own side's chart. Normals are recomputed. A
+    mesh already at or below the target is returned unchanged.
     """
     if mesh.n_faces <= target_faces:
         return mesh
@@ -132,7 +157,8 @@ def simplify(mesh: Mesh, target_faces: int) -> Mesh:
     vertex_material[triangles.reshape(-1)] = np.repeat(mesh.face_material.cpu().numpy(), 3)
     faces = torch.from_numpy(new_faces)
     positions = torch.from_numpy(new_points).to(mesh.positions.dtype)
-    uvs = None if mesh.uvs is None else mesh.uvs[torch.from_numpy(representative)]
+    uvs = None if mesh.uvs is None else _surface_uvs(points, triangles, mesh.uvs.detach().cpu().double().numpy(),
+                                                     new_points, mapping).to(mesh.uvs.dtype)
     face_material = torch.from_numpy(vertex_material[representative][new_faces[:, 0]])
     return replace(mesh, positions=positions, normals=vertex_normals(positions, faces), faces=faces,
                    uvs=uvs, face_material=face_material, source=None)
