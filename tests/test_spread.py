@@ -719,3 +719,44 @@ def test_a_bit_block_gives_each_bit_whole_blocks_of_cells_and_leaves_the_shipped
         assert 0.4 < float((sign > 0).float().mean()) < 0.6
     config = ModelConfig.from_dict({"n_bits": 64, "texture_encoder": "spread", "chips": 64, "bit_block": 2})
     assert WatermarkModel(config).texture_encoder.block == 2
+
+
+def test_local_affine_takes_up_another_engines_tone_and_leaves_the_mark():
+    """`local_affine`: a picture that is a smooth affine map of the prediction in each channel (another
+    engine's shading and colour transform) is fitted to within a small residual, while a mark that does
+    not follow the prediction stays in `seen - fitted` almost whole."""
+    from meshseal.models.spread import local_affine
+
+    generator = torch.Generator().manual_seed(0)
+    height = width = 48
+    texture = torch.nn.functional.avg_pool2d(torch.rand(1, 3, height, width, generator=generator), 3, 1, 1)[0]
+    ys, xs = torch.meshgrid(torch.linspace(0, 1, height), torch.linspace(0, 1, width), indexing="ij")
+    shading = (0.6 + 0.4 * xs)[None]  # slow light across the object
+    engine = shading * texture * torch.tensor([0.8, 0.9, 1.1])[:, None, None] + torch.tensor([0.05, 0.0, 0.08])[:, None, None]
+    mark = 0.01 * torch.sign(torch.randn(1, height, width, generator=generator)).expand(3, -1, -1)
+    pixel = torch.arange(height * width)
+    as_rows = lambda image: image.reshape(3, -1).T  # noqa: E731
+    fitted = local_affine(as_rows(engine + mark), as_rows(texture), pixel, (1, height, width), sigma=1.0)
+    left = as_rows(engine + mark) - fitted
+    plain = as_rows(engine + mark) - as_rows(texture)
+    assert float(left.pow(2).mean()) < 0.05 * float(plain.pow(2).mean())  # the engine's change is taken up
+    kept = float((left * as_rows(mark)).sum() / as_rows(mark).pow(2).sum())
+    assert kept > 0.6  # most of the mark stays
+
+
+def test_the_affine_fit_is_used_only_where_it_explains_the_misfit():
+    """`_affine_where_it_fits`: a picture that is the prediction plus white noise keeps the plain residual;
+    one that another engine's tone curve bent takes the fitted one."""
+    from meshseal.methods.spread import _affine_where_it_fits
+
+    generator = torch.Generator().manual_seed(1)
+    height = width = 40
+    texture = torch.nn.functional.avg_pool2d(torch.rand(1, 3, height, width, generator=generator), 3, 1, 1)[0]
+    rows = lambda image: image.reshape(3, -1).T  # noqa: E731
+    pixel = torch.arange(height * width)
+    colour = torch.ones(3) / 3 ** 0.5
+    for seen, expect_fit in ((texture + 0.01 * torch.randn(3, height, width, generator=generator), False),
+                             (0.3 + 0.5 * texture ** 0.6, True)):
+        plain = ((rows(seen) - rows(texture)) * colour).sum(1)
+        used = _affine_where_it_fits(rows(seen), rows(texture), colour, plain, pixel, (1, height, width), 1.0, 3.0)
+        assert torch.equal(used, plain) is (not expect_fit)

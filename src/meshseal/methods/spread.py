@@ -20,6 +20,29 @@ from .base import Method, informed_original, source_prefix, textured_faces, text
 PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has faces without UV area
 
 
+# The local affine fit of the picture on the prediction (`read_affine`) is used for a picture where it
+# leaves under this share of the plain residual's detail (RMS after the whitening's high-pass): a
+# picture from another engine (0.35-0.6 measured on Blender's three), not our renderer's own pictures
+# nor their JPEG or WebP copies (0.65-0.9), which the fit would only weaken.
+AFFINE_BELOW = 0.7
+
+
+def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: torch.Tensor, along: torch.Tensor,
+                          pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float, highpass: float) -> torch.Tensor:
+    """The residual along the mark's colour (P,) with the picture fitted as a local affine map of the
+    prediction (`models.spread.local_affine`) in each picture where that fit explains the misfit
+    (`AFFINE_BELOW`), the plain residual `along` elsewhere. Picture and prediction only: no key."""
+    from ..models.spread import local_affine, local_mean
+
+    fitted = ((seen - local_affine(seen, expected, pixel, shape, sigma)) * colour).sum(1)
+    image = pixel // (shape[1] * shape[2])
+    detail = lambda v: (v - local_mean(v, pixel, shape, highpass)) ** 2  # noqa: E731
+    energy = torch.zeros(shape[0], 2, dtype=along.dtype, device=along.device)
+    energy.index_add_(0, image, torch.stack([detail(fitted), detail(along)], 1))
+    use = energy[:, 0] < AFFINE_BELOW ** 2 * energy[:, 1]
+    return torch.where(use.index_select(0, image), fitted, along)
+
+
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
                     grids: tuple[int, ...] | None = None, compression: bool = True) -> torch.Tensor:
@@ -86,6 +109,9 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             gain = gain * ratio
         else:
             along = ((found.seen - expected) * colour).sum(1)
+            if config.read_affine > 0.0:  # another engine's shading, tone and colour, fitted locally
+                along = _affine_where_it_fits(found.seen, expected, colour, along, pixel, (n_images, height, width),
+                                              config.read_affine, config.read_highpass)
             if dequantized is not None:  # a grey mark m in luminance is m in every channel
                 along = torch.where(dequantized.isnan(), along, dequantized * colour.sum())
         whitened = torch.zeros_like(along)
@@ -121,7 +147,7 @@ class SpreadMethod(Method):
     name = "spread"
     params_named = ("n_bits", "chips", "coarse_chips", "coarse_below", "fine_chips", "fine_above", "mark_colour",
                     "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "read_highpass",
-                    "read_window", "read_brightness")
+                    "read_window", "read_brightness", "read_affine")
     informed = True
     calibrated = True
     takes_strength = True

@@ -232,6 +232,23 @@ def local_mean(values: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int,
     return (blurred[:channels] / blurred[channels:].clamp_min(1e-6)).T.reshape(values.shape)
 
 
+def local_affine(seen: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int],
+                 sigma: float, eps: float = 1e-6) -> torch.Tensor:
+    """The picture (P, C) at covered pixels fitted as a local affine map of the prediction (P, C), each
+    channel on its own: a * expected + b, with a and b least squares over a Gaussian window (sigma px)
+    and then averaged over it (a guided filter with the prediction as the guide; `eps` regularises a
+    where the prediction is flat, which then tends to the local mean). What another engine changes
+    smoothly (its shading, its tone curve, its colour transform, the texture's contrast) is taken up;
+    a mark, which does not follow the prediction, mostly stays in `seen - fitted`."""
+    channels = seen.shape[1]
+    means = local_mean(torch.cat([expected, seen, expected * seen, expected * expected], 1), pixel, shape, sigma)
+    m_p, m_s, m_ps, m_pp = means.split(channels, 1)
+    a = (m_ps - m_p * m_s) / ((m_pp - m_p * m_p).clamp_min(0.0) + eps)
+    b = m_s - a * m_p
+    a, b = local_mean(torch.cat([a, b], 1), pixel, shape, sigma).split(channels, 1)
+    return a * expected + b
+
+
 def within_reach(pixel: torch.Tensor, shape: tuple[int, int, int], reach: int):
     """The window of the (B, H, W) pictures that holds every pixel (P,) plus `reach` pixels around them
     (clipped to the picture): (the pixels' flat indices into it, its (B, h, w) shape, its (top, left)
