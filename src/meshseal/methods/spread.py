@@ -27,20 +27,22 @@ PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has
 AFFINE_BELOW = 0.7
 
 
-def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: torch.Tensor, along: torch.Tensor,
-                          pixel: torch.Tensor, shape: tuple[int, int, int], sigma: float, highpass: float) -> torch.Tensor:
-    """The residual along the mark's colour (P,) with the picture fitted as a local affine map of the
-    prediction (`models.spread.local_affine`) in each picture where that fit explains the misfit
-    (`AFFINE_BELOW`), the plain residual `along` elsewhere. Picture and prediction only: no key."""
+def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: torch.Tensor, pixel: torch.Tensor,
+                          shape: tuple[int, int, int], sigma: float, highpass: float) -> torch.Tensor:
+    """The prediction (P, 3) to read the picture against: in each picture where the local affine fit of
+    the picture on the prediction (`models.spread.local_affine`) explains the misfit (`AFFINE_BELOW`,
+    measured along the mark's colour), the fit; elsewhere `expected` as it is. Picture and prediction
+    only: no key."""
     from ..models.spread import local_affine, local_mean
 
-    fitted = ((seen - local_affine(seen, expected, pixel, shape, sigma)) * colour).sum(1)
+    fitted = local_affine(seen, expected, pixel, shape, sigma)
     image = pixel // (shape[1] * shape[2])
     detail = lambda v: (v - local_mean(v, pixel, shape, highpass)) ** 2  # noqa: E731
-    energy = torch.zeros(shape[0], 2, dtype=along.dtype, device=along.device)
-    energy.index_add_(0, image, torch.stack([detail(fitted), detail(along)], 1))
+    energy = torch.zeros(shape[0], 2, dtype=seen.dtype, device=seen.device)
+    energy.index_add_(0, image, torch.stack([detail(((seen - fitted) * colour).sum(1)),
+                                             detail(((seen - expected) * colour).sum(1))], 1))
     use = energy[:, 0] < AFFINE_BELOW ** 2 * energy[:, 1]
-    return torch.where(use.index_select(0, image), fitted, along)
+    return torch.where(use.index_select(0, image)[:, None], fitted, expected)
 
 
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
@@ -80,6 +82,10 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             before = expected
             expected, chosen = codecs.recompressed(image, expected, pixel)
             if fit < 0.0:  # no brightness fit: the residual as it is, a JPEG's read through its quantiser
+                if model.config.read_affine > 0.0:  # the unrounded prediction as another engine showed it
+                    before = _affine_where_it_fits(found.seen, before, encoder.colour.to(image), pixel,
+                                                   (n_images, height, width), model.config.read_affine,
+                                                   model.config.read_highpass)
                 dequantized = codecs.dequantized(image, before, pixel, chosen)
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
         textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
@@ -108,10 +114,10 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             along = ((found.seen - ratio[:, None] * expected) * colour).sum(1)
             gain = gain * ratio
         else:
-            along = ((found.seen - expected) * colour).sum(1)
             if config.read_affine > 0.0:  # another engine's shading, tone and colour, fitted locally
-                along = _affine_where_it_fits(found.seen, expected, colour, along, pixel, (n_images, height, width),
-                                              config.read_affine, config.read_highpass)
+                expected = _affine_where_it_fits(found.seen, expected, colour, pixel, (n_images, height, width),
+                                                 config.read_affine, config.read_highpass)
+            along = ((found.seen - expected) * colour).sum(1)
             if dequantized is not None:  # a grey mark m in luminance is m in every channel
                 along = torch.where(dequantized.isnan(), along, dequantized * colour.sum())
         whitened = torch.zeros_like(along)
