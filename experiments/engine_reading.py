@@ -5,7 +5,8 @@ The first N test meshes of --data are marked by the model (message: the mesh's i
 view of the seed's ranges at 256^2 on a grey background, saved as 8-bit arrays in --cache (one .npz a
 mesh, kept: a later run with other settings renders nothing; Blender's engines need `pip install
 '.[blender]'`). Each marked picture is then read as `meshseal detect` reads it, with the camera known
-(`--register`: without metadata, registered and looked at again) under each value of one model setting
+(`--register`: without metadata, registered and looked at again), after `--attack` (as `meshseal eval
+--attacks` applies it), under each value of one model setting
 (`--vary KEY=V1,V2,...`, e.g. `read_affine=0,1`): per engine and value, the share detected at FPR 1e-6,
 named (the owner's test of its message, `detect --expect`) and the mean bit accuracy, one Markdown row each.
 
@@ -71,7 +72,12 @@ def main() -> None:
     parser.add_argument("--vary", required=True, metavar="KEY=V1,V2", help="a model setting and the values to read under")
     parser.add_argument("--register", action="store_true", help="read without metadata: camera registered")
     parser.add_argument("--model", default="default")
+    parser.add_argument("--attack", default="none", help="a picture attack of `meshseal eval --attacks` (jpeg90, webp80, ...)")
     args = parser.parse_args()
+    from meshseal.evaluation.attacks import ATTACKS, apply
+
+    if args.attack not in ATTACKS:
+        parser.error(f"--attack: one of {', '.join(ATTACKS)}")
     key, values = args.vary.split("=", 1)
     values = [float(v) for v in values.split(",")]
     wm = meshseal.load(args.model, "cpu")
@@ -90,7 +96,7 @@ def main() -> None:
         for engine in args.engines:
             for value in values:
                 setattr(wm.model.config, key, value)
-                picture = pictures[f"{engine}_m"]
+                picture = apply(args.attack, pictures[f"{engine}_m"], np.random.default_rng([index, 1]))
                 try:
                     if args.register:
                         reading = wm.look_again(wm.read(picture, original, register=True), original)
@@ -110,7 +116,7 @@ def main() -> None:
     for (engine, value), rows in tally.items():
         detected, named, bits = (np.mean([r[i] for r in rows]) for i in range(3))
         print(f"| {engine} | {value:g} | {len(rows)} | {detected:.2f} | {named:.2f} | {bits:.3f} |")
-    print(f"\n({args.model}, first {count} test meshes, one seeded 256^2 view each, {camera}, FPR 1e-6)")
+    print(f"\n({args.model}, first {count} test meshes, one seeded 256^2 view each, attack {args.attack}, {camera}, FPR 1e-6)")
 
 
 if __name__ == "__main__":
