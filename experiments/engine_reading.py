@@ -72,6 +72,8 @@ def main() -> None:
     parser.add_argument("--vary", required=True, metavar="KEY=V1,V2", help="a model setting and the values to read under")
     parser.add_argument("--register", action="store_true", help="read without metadata: camera registered")
     parser.add_argument("--model", default="default")
+    parser.add_argument("--unmarked", action="store_true",
+                        help="read the unmarked originals' pictures instead: false positives and the smallest p-value")
     parser.add_argument("--attack", default="none", help="a picture attack of `meshseal eval --attacks` (jpeg90, webp80, ...)")
     args = parser.parse_args()
     from meshseal.evaluation.attacks import ATTACKS, apply
@@ -96,26 +98,27 @@ def main() -> None:
         for engine in args.engines:
             for value in values:
                 setattr(wm.model.config, key, value)
-                picture = apply(args.attack, pictures[f"{engine}_m"], np.random.default_rng([index, 1]))
+                picture = apply(args.attack, pictures[f"{engine}_{'o' if args.unmarked else 'm'}"],
+                                np.random.default_rng([index, 1]))
                 try:
                     if args.register:
                         reading = wm.look_again(wm.read(picture, original, register=True), original)
                     else:
                         reading = wm.read(picture, original, camera=cameras)
                 except meshseal.MeshsealError:
-                    tally[(engine, value)].append((False, False, 0.5))
+                    tally[(engine, value)].append((False, False, 0.5, 1.0))
                     continue
                 found = wm.decide([reading])
                 named = wm.decide([reading], expect=f"{index:04d}")
                 bits = float(np.mean([int(b) for b in found.bits] == expected))
-                tally[(engine, value)].append((bool(found.detected), bool(named.detected), bits))
+                tally[(engine, value)].append((bool(found.detected), bool(named.detected), bits, float(found.p_value)))
                 line.append(f"{engine} {key}={value:g}: {bits:.2f}{' detected' if found.detected else ''}")
         print(f"mesh {index}: " + "; ".join(line), flush=True)
-    camera = "registered" if args.register else "camera known"
-    print(f"\n| engine | {key} | pictures | detected | named | bit accuracy |\n|---|---|---|---|---|---|")
+    camera = ("registered" if args.register else "camera known") + (", unmarked pictures" if args.unmarked else "")
+    print(f"\n| engine | {key} | pictures | detected | named | bit accuracy | smallest p |\n|---|---|---|---|---|---|---|")
     for (engine, value), rows in tally.items():
         detected, named, bits = (np.mean([r[i] for r in rows]) for i in range(3))
-        print(f"| {engine} | {value:g} | {len(rows)} | {detected:.2f} | {named:.2f} | {bits:.3f} |")
+        print(f"| {engine} | {value:g} | {len(rows)} | {detected:.2f} | {named:.2f} | {bits:.3f} | {min(r[3] for r in rows):.2g} |")
     print(f"\n({args.model}, first {count} test meshes, one seeded 256^2 view each, attack {args.attack}, {camera}, FPR 1e-6)")
 
 
