@@ -223,3 +223,33 @@ def test_a_jpeg_file_of_an_unlisted_quality_is_read_through_its_own_steps(tmp_pa
     assert compression.dequantized(image, expected, pixel, [("JPEG", 90, 0)]) is not None
     assert np.array_equal(seen[0], steps)
     assert compression.dequantized(image.clone(), expected, pixel, [None]) is None  # no file steps, no JPEG found
+
+
+def test_a_jpeg_pasted_at_another_place_is_found_where_its_blocks_start_and_read_there():
+    """A JPEG shown on a page and captured in a screenshot: its 8 x 8 grid starts at the paste's offset
+    (mod 8). `jpeg_phase` finds it (and (0, 0) for the JPEG itself and for a lossless picture);
+    `recompressed` then finds the codec that saved it, and the quantiser read sees its steps."""
+    from scipy.ndimage import gaussian_filter
+
+    from meshseal.reading.compression import _codec_round_trip, dequantized_luma, jpeg_luma_table, jpeg_phase
+
+    rng = np.random.default_rng(1)
+    host = gaussian_filter(np.clip(0.5 + 0.25 * rng.standard_normal((96, 128, 3)), 0, 1), (1.0, 1.0, 0))
+    lossless = (host * 255).round().astype(np.uint8)
+    codec = ("JPEG", 75, 2)
+    saved = _codec_round_trip(lossless, codec)
+    assert jpeg_phase(lossless) == (0, 0) and jpeg_phase(saved) == (0, 0)
+    canvas = np.full((160, 200, 3), 236, dtype=np.uint8)
+    canvas[29:29 + 96, 43:43 + 128] = saved  # a screenshot: the picture pasted at (29, 43)
+    assert jpeg_phase(canvas) == (5, 3)
+    shot = np.full((160, 200, 3), 236, dtype=np.uint8)
+    shot[29:29 + 96, 43:43 + 128] = lossless  # the prediction, pasted where the picture is
+    ys, xs = np.mgrid[29 + 8:29 + 88, 43 + 8:43 + 120]
+    pixel = torch.from_numpy((ys * 200 + xs).reshape(-1))
+    picture = torch.from_numpy(canvas).permute(2, 0, 1)[None].float() / 255.0
+    exact = torch.from_numpy(shot.reshape(-1, 3)[pixel.numpy()].astype(np.float32) / 255.0)
+    _, chosen = recompressed(picture, exact, pixel)
+    assert chosen == [codec]
+    table = jpeg_luma_table(codec)
+    assert dequantized_luma(canvas / 255.0, shot / 255.0, table, 2.0) is None  # read on the picture's own grid: off
+    assert dequantized_luma(canvas / 255.0, shot / 255.0, table, 2.0, phase=(5, 3)) is not None

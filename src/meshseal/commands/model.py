@@ -113,9 +113,10 @@ def register(subparsers) -> None:
                           help="informed models: also read every picture after each of these attacks, comma-"
                                "separated, or 'all' (none, jpeg95, jpeg90, jpeg75, jpeg50, jpeg95_444, jpeg90_444 "
                                "(no chroma subsampling), webp80, resize0.5, "
-                               "resize0.75, resize1.5, crop0.8, screenshot, brightness, noise2; on the marked asset before "
+                               "resize0.75, resize1.5, crop0.8, screenshot, jpeg90_screenshot, jpeg75_screenshot (a JPEG pasted into a "
+                               "screenshot), brightness, noise2; on the marked asset before "
                                "it is rendered: texture_jpeg90, texture_half, texture_bc1, texture_bc7, obj_glb, "
-                               "decimate0.5); the resizes, the crop and the screenshot need --register. Prints one "
+                               "decimate0.5); the resizes, the crop and the screenshots need --register. Prints one "
                                "row an attack")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(func=run_eval)

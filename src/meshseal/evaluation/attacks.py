@@ -92,6 +92,15 @@ def gaussian_noise(sigma: float = 2.0) -> Callable:
     return attack
 
 
+def chained(*steps: Callable) -> Callable:
+    """The attacks one after the other (a JPEG on the web, then a screenshot of the page that shows it)."""
+    def attack(picture, rng):
+        for step in steps:
+            picture = step(picture, rng)
+        return picture
+    return attack
+
+
 ATTACKS: dict[str, Callable] = {
     "none": lambda picture, rng: picture.copy(),
     "jpeg95": jpeg(95), "jpeg90": jpeg(90), "jpeg75": jpeg(75), "jpeg50": jpeg(50),
@@ -100,10 +109,11 @@ ATTACKS: dict[str, Callable] = {
     "resize0.5": resize(0.5), "resize0.75": resize(0.75), "resize1.5": resize(1.5),
     "crop0.8": central_crop(0.8),
     "screenshot": screenshot(),
+    "jpeg90_screenshot": chained(jpeg(90), screenshot()), "jpeg75_screenshot": chained(jpeg(75), screenshot()),
     "brightness": brightness_gamma(),
     "noise2": gaussian_noise(2.0),
 }
-GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot"}  # the camera of the picture changes
+GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot", "jpeg90_screenshot", "jpeg75_screenshot"}  # the camera of the picture changes
 
 
 # The asset attacks (`asset_attacks.ASSET_ATTACKS`, on the marked mesh before it is rendered), named here

@@ -58,6 +58,39 @@ def _jpeg_tables() -> dict:
     return _TABLES
 
 
+def jpeg_phase(picture: np.ndarray) -> tuple[int, int]:
+    """(dy, dx): where a JPEG's 8 x 8 block grid starts in a picture that holds it pasted or cropped at
+    another place (a screenshot of a page that shows a JPEG), from the rows and columns across which the
+    luminance jumps most: a JPEG's blocks are coded apart, so their edges step. (0, 0) where no phase
+    stands out (a lossless picture, or a JPEG where it was saved). `picture` (H, W, 3) uint8 or in [0, 1]."""
+    luma = np.asarray(picture, dtype=np.float64) @ np.asarray(LUMA)
+
+    def phase(steps: np.ndarray) -> int:  # steps[j]: mean |luma[j + 1] - luma[j]| along one axis
+        if len(steps) < 32:
+            return 0
+        starts = (np.arange(len(steps)) + 1) % 8  # the block a step leads into starts at this phase
+        score = np.array([steps[starts == k].mean() for k in range(8)])
+        best = int(np.argmax(score))
+        rest = np.median(np.delete(score, best))
+        return best if score[best] > PHASE_ABOVE * max(rest, 1e-9) else 0
+
+    return (phase(np.abs(np.diff(luma, axis=0)).mean(axis=1)), phase(np.abs(np.diff(luma, axis=1)).mean(axis=0)))
+
+
+PHASE_ABOVE = 1.3  # a block grid's phase stands out where its rows' (columns') steps are this much above the others'
+
+
+def _round_trip_at(picture: np.ndarray, codec, phase: tuple[int, int]) -> np.ndarray:
+    """`_codec_round_trip` with a JPEG's block grid starting at `phase` (dy, dx): the picture from there
+    on is coded (as a JPEG pasted there was), the rows and columns before it kept as they are."""
+    dy, dx = phase
+    if (dy, dx) == (0, 0) or codec[0] != "JPEG":
+        return _codec_round_trip(picture, codec)
+    out = picture.copy()
+    out[dy:, dx:] = _codec_round_trip(np.ascontiguousarray(picture[dy:, dx:]), codec)
+    return out
+
+
 def _codec_round_trip(picture: np.ndarray, codec) -> np.ndarray:
     """(H, W, 3) uint8 through one codec and back."""
     from PIL import Image
@@ -84,6 +117,9 @@ def _known(image: torch.Tensor, registry: list | None = None):
                                                                   image._version):
             return entries
     return None
+
+
+_PHASES: list = []  # (pictures, their version, each one's JPEG block-grid phase (dy, dx) `recompressed` found)
 
 
 def _remember(image: torch.Tensor, candidates: list) -> None:
@@ -121,6 +157,11 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     canvas = (canvas.clamp(0, 1) * 255).round().to(torch.uint8).reshape(n_images, height, width, 3).numpy()
     out, chosen = expected.clone(), []
     owner = pixel // (height * width)
+    phases = _known(image, _PHASES)
+    if phases is None:  # a picture read from a JPEG file holds its own grid; pixels may hold one elsewhere
+        pictures = flat.reshape(n_images, height, width, 3).numpy()
+        phases = [(0, 0) if known is not None else jpeg_phase(pictures[index]) for index in range(n_images)]
+        _PHASES[:] = [(image, image._version, phases)] + [e for e in _PHASES if e[0] is not image][:3]
     for index in range(n_images):
         mine = owner == index
         if not bool(mine.any()):
@@ -131,7 +172,7 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
         plain = canvas[index].reshape(-1, 3)[local].astype(np.float64)
         best, best_error = None, float(((seen - plain) ** 2).sum()) * margin
         for codec in (codecs if known is None else known[index]):
-            trial = _codec_round_trip(canvas[index], codec).reshape(-1, 3)[local].astype(np.float64)
+            trial = _round_trip_at(canvas[index], codec, phases[index]).reshape(-1, 3)[local].astype(np.float64)
             error = float(((seen - trial) ** 2).sum())
             if error < best_error:
                 best, best_error, values = codec, error, trial
@@ -169,7 +210,7 @@ def jpeg_luma_table(codec) -> np.ndarray | None:
 
 
 def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndarray, sigma: float,
-                     inside: np.ndarray | None = None) -> np.ndarray | None:
+                     inside: np.ndarray | None = None, phase: tuple[int, int] = (0, 0)) -> np.ndarray | None:
     """The mark in luminance (H, W), in [0, 1] units, estimated from a JPEG `picture` (H, W, 3) in [0, 1]
     and the unmarked `prediction` of it (H, W, 3) in [0, 1], not rounded, through the luminance
     steps `table` (8, 8): per 8 x 8 block (aligned with the picture's top-left corner, as JPEG's), the
@@ -179,6 +220,15 @@ def dequantized_luma(picture: np.ndarray, prediction: np.ndarray, table: np.ndar
     frequency to the object's blocks by EM was measured and read the same: docs/reading.md.)"""
     from scipy.fft import dctn, idctn
 
+    dy, dx = phase
+    if (dy, dx) != (0, 0):  # the grid starts there (`jpeg_phase`): read from there on, 0 before it
+        mark = np.zeros(picture.shape[:2])
+        within = dequantized_luma(picture[dy:, dx:], prediction[dy:, dx:], table, sigma,
+                                  None if inside is None else inside[dy:, dx:])
+        if within is None:
+            return None
+        mark[dy:, dx:] = within
+        return mark
     height, width = picture.shape[:2]
     luma = np.asarray(LUMA)
     rows, cols = -(-height // 8) * 8, -(-width // 8) * 8
@@ -253,6 +303,7 @@ def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor
     canvas[pixel.cpu()] = expected.detach().cpu().double().clamp(0, 1)
     out = torch.full((len(pixel),), float("nan"), dtype=torch.float64)
     owner = (pixel // (height * width)).cpu()
+    phases = _known(image, _PHASES) or [(0, 0)] * n_images
     for index, table in enumerate(tables):
         mine = owner == index
         if table is None or not bool(mine.any()):
@@ -261,7 +312,7 @@ def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor
         inside = np.zeros(height * width, dtype=bool)
         inside[(pixel[mine] % (height * width)).cpu().numpy()] = True
         mark = dequantized_luma(flat.reshape(shape)[index].numpy(), canvas.reshape(shape)[index].numpy(), table, sigma,
-                                inside.reshape(height, width))
+                                inside.reshape(height, width), phases[index])
         if mark is None:
             continue
         out[mine] = torch.from_numpy(mark.reshape(-1)[(pixel[mine] % (height * width)).cpu().numpy()])
