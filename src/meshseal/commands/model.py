@@ -114,7 +114,7 @@ def register(subparsers) -> None:
                                "separated, or 'all' (none, jpeg95, jpeg90, jpeg75, jpeg50, jpeg95_444, jpeg90_444 "
                                "(no chroma subsampling), webp80, resize0.5, "
                                "resize0.75, resize1.5, crop0.8, screenshot, jpeg90_screenshot, jpeg75_screenshot (a JPEG pasted into a "
-                               "screenshot), brightness, noise2; on the marked asset before "
+                               "screenshot), jpeg75_crop0.8 (a JPEG cropped), brightness, noise2; on the marked asset before "
                                "it is rendered: texture_jpeg90, texture_half, texture_bc1, texture_bc7, obj_glb, "
                                "decimate0.5); the resizes, the crop and the screenshots need --register. Prints one "
                                "row an attack")

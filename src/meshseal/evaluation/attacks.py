@@ -110,10 +110,12 @@ ATTACKS: dict[str, Callable] = {
     "crop0.8": central_crop(0.8),
     "screenshot": screenshot(),
     "jpeg90_screenshot": chained(jpeg(90), screenshot()), "jpeg75_screenshot": chained(jpeg(75), screenshot()),
+    "jpeg75_crop0.8": chained(jpeg(75), central_crop(0.8)),
     "brightness": brightness_gamma(),
     "noise2": gaussian_noise(2.0),
 }
-GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot", "jpeg90_screenshot", "jpeg75_screenshot"}  # the camera of the picture changes
+GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot", "jpeg90_screenshot", "jpeg75_screenshot",
+             "jpeg75_crop0.8"}  # the camera of the picture changes
 
 
 # The asset attacks (`asset_attacks.ASSET_ATTACKS`, on the marked mesh before it is rendered), named here
