@@ -168,10 +168,10 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
             kinds = picture_kinds(model.texture_encoder, grid, pictures, shown) if calibrated else [["plain"]] * views
             asset_pictures = {}  # each asset attack's 8-bit pictures, rendered from the attacked marked asset
+            marked = Mesh(positions[0], normals_marked[0], faces[0], uvs_marked[0],
+                          materials=[Material(texture=texture_marked[0].permute(1, 2, 0))])
             for number, name in enumerate(n for n in attacked if n in ASSET_ATTACKS):
                 rng = np.random.default_rng([seed, index, 1_000 + number])
-                marked = Mesh(positions[0], normals_marked[0], faces[0], uvs_marked[0],
-                              materials=[Material(texture=texture_marked[0].permute(1, 2, 0))])
                 hit = MeshBatch.from_mesh(attack_asset(name, marked, rng))
                 seen_hit = renderer(hit, cameras, lights, size, size, background).image.clamp(0, 1)
                 asset_pictures[name] = torch.round(seen_hit * 255) / 255
