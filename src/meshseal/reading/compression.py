@@ -158,27 +158,35 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     out, chosen = expected.clone(), []
     owner = pixel // (height * width)
     phases = _known(image, _PHASES)
-    if phases is None:  # a picture read from a JPEG file holds its own grid; pixels may hold one elsewhere
+    searched = phases is None
+    if searched:  # a picture read from a JPEG file holds its own grid; pixels may hold one elsewhere
         pictures = flat.reshape(n_images, height, width, 3).numpy()
         phases = [(0, 0) if known is not None else jpeg_phase(pictures[index]) for index in range(n_images)]
-        _PHASES[:] = [(image, image._version, phases)] + [e for e in _PHASES if e[0] is not image][:3]
+    found_phases = []
     for index in range(n_images):
         mine = owner == index
         if not bool(mine.any()):
             chosen.append(None)
+            found_phases.append((0, 0))
             continue
         local = (pixel[mine] % (height * width)).cpu().numpy()
         seen = flat.reshape(n_images, height * width, 3)[index, local].numpy().astype(np.float64) * 255.0
         plain = canvas[index].reshape(-1, 3)[local].astype(np.float64)
-        best, best_error = None, float(((seen - plain) ** 2).sum()) * margin
+        best, best_error, best_phase = None, float(((seen - plain) ** 2).sum()) * margin, (0, 0)
+        # The grid where the picture's corner is, and where `jpeg_phase` saw one (if elsewhere): whichever fits.
+        tries = [phases[index]] if not searched else list(dict.fromkeys([(0, 0), phases[index]]))
         for codec in (codecs if known is None else known[index]):
-            trial = _round_trip_at(canvas[index], codec, phases[index]).reshape(-1, 3)[local].astype(np.float64)
-            error = float(((seen - trial) ** 2).sum())
-            if error < best_error:
-                best, best_error, values = codec, error, trial
+            for phase in (tries if codec[0] == "JPEG" else [(0, 0)]):
+                trial = _round_trip_at(canvas[index], codec, phase).reshape(-1, 3)[local].astype(np.float64)
+                error = float(((seen - trial) ** 2).sum())
+                if error < best_error:
+                    best, best_error, values, best_phase = codec, error, trial, phase
         chosen.append(best)
+        found_phases.append(best_phase)
         if best is not None:
             out[mine] = torch.from_numpy(values / 255.0).to(out)
+    if searched:  # the grid each picture's codec fitted at, for a second look and the quantiser read
+        _PHASES[:] = [(image, image._version, found_phases)] + [e for e in _PHASES if e[0] is not image][:3]
     if known is None:
         _remember(image, [[] if codec is None else [codec] for codec in chosen])
     return out, chosen
