@@ -17,68 +17,68 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
 from ..mesh import Mesh
-
-
-def _bytes(texture: torch.Tensor) -> np.ndarray:
-    """(H, W, 3) float in [0, 1] -> uint8, as an image file holds it."""
-    return np.round(texture.detach().cpu().clamp(0, 1).numpy() * 255).astype(np.uint8)
-
-
-def _tensor(picture: np.ndarray, like: torch.Tensor) -> torch.Tensor:
-    return torch.from_numpy(np.array(picture[..., :3])).to(like.device, like.dtype) / 255.0
+from ..reading.imports import resized, to_bytes
 
 
 def _each_texture(mesh: Mesh, change: Callable[[np.ndarray], np.ndarray]) -> Mesh:
-    materials = [m if m.texture is None else replace(m, texture=_tensor(change(_bytes(m.texture)), m.texture))
-                 for m in mesh.materials]
-    return replace(mesh, materials=materials)
+    """`mesh` with every texture put through `change` (8-bit (H, W, 3) -> 8-bit (H', W', 3))."""
+    def changed(texture: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(change(to_bytes(texture))).to(texture.device, texture.dtype) / 255.0
+
+    return replace(mesh, materials=[m if m.texture is None else replace(m, texture=changed(m.texture))
+                                    for m in mesh.materials])
+
+
+def jpeg(texture: np.ndarray, quality: int) -> np.ndarray:
+    """An 8-bit texture (H, W, 3) saved as JPEG at `quality` (Pillow's defaults: 4:2:0 chroma), read back."""
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(texture).save(buffer, format="JPEG", quality=quality)
+    buffer.seek(0)
+    with Image.open(buffer) as decoded:
+        return np.asarray(decoded.convert("RGB")).copy()
+
+
+def compress_blocks(texture: np.ndarray, kind: str) -> np.ndarray:
+    """An 8-bit texture (H, W, 3) block-compressed as `kind` ('bc1' or 'bc7', etcpak's encoders) and
+    decoded as a GPU samples it (texture2ddecoder); a size that is not a multiple of 4 is padded by its
+    edge texels. Needs the `assets` extra."""
+    try:
+        import etcpak
+        import texture2ddecoder
+    except ImportError:
+        from ..errors import MeshsealError
+
+        raise MeshsealError("block compression needs etcpak and texture2ddecoder: "
+                            "pip install 'meshseal[assets]'") from None
+    height, width = texture.shape[:2]
+    padded = np.pad(texture, ((0, -height % 4), (0, -width % 4), (0, 0)), mode="edge")
+    rows, cols = padded.shape[:2]
+    rgba = np.concatenate([padded, np.full((rows, cols, 1), 255, np.uint8)], axis=2)
+    encode = etcpak.compress_bc1 if kind == "bc1" else etcpak.compress_bc7
+    decode = texture2ddecoder.decode_bc1 if kind == "bc1" else texture2ddecoder.decode_bc7
+    bgra = np.frombuffer(decode(encode(np.ascontiguousarray(rgba).tobytes(), cols, rows), cols, rows), np.uint8)
+    return bgra.reshape(rows, cols, 4)[:height, :width, [2, 1, 0]].copy()
 
 
 def texture_jpeg(quality: int) -> Callable:
     """Every texture saved as JPEG at `quality` (Pillow's defaults: 4:2:0 chroma) and read back."""
-    def change(texture):
-        buffer = io.BytesIO()
-        Image.fromarray(texture).save(buffer, format="JPEG", quality=quality)
-        buffer.seek(0)
-        with Image.open(buffer) as decoded:
-            return np.asarray(decoded.convert("RGB")).copy()
-    return lambda mesh, rng: _each_texture(mesh, change)
+    return lambda mesh, rng: _each_texture(mesh, lambda texture: jpeg(texture, quality))
 
 
 def texture_resize(factor: float) -> Callable:
     """Every texture resized by `factor` (Pillow's antialiased bicubic), as an engine's maximum texture
     size does on import; the UVs are unchanged, so the renderer samples the smaller image."""
-    def change(texture):
-        height, width = texture.shape[:2]
-        size = (max(4, round(width * factor)), max(4, round(height * factor)))
-        return np.asarray(Image.fromarray(texture).resize(size, Image.Resampling.BICUBIC))
-    return lambda mesh, rng: _each_texture(mesh, change)
+    return lambda mesh, rng: _each_texture(mesh, lambda texture: resized(texture, factor))
 
 
 def block_compressed(kind: str) -> Callable:
     """Every texture block-compressed as `kind` ('bc1' or 'bc7', etcpak's encoders) and decoded as a GPU
     samples it (texture2ddecoder); a size that is not a multiple of 4 is padded by its edge texels."""
-    def change(texture):
-        try:
-            import etcpak
-            import texture2ddecoder
-        except ImportError:
-            from ..errors import MeshsealError
-
-            raise MeshsealError("block compression needs etcpak and texture2ddecoder: "
-                                "pip install 'meshseal[assets]'") from None
-        height, width = texture.shape[:2]
-        padded = np.pad(texture, ((0, -height % 4), (0, -width % 4), (0, 0)), mode="edge")
-        rows, cols = padded.shape[:2]
-        rgba = np.concatenate([padded, np.full((rows, cols, 1), 255, np.uint8)], axis=2)
-        encode = etcpak.compress_bc1 if kind == "bc1" else etcpak.compress_bc7
-        decode = texture2ddecoder.decode_bc1 if kind == "bc1" else texture2ddecoder.decode_bc7
-        bgra = np.frombuffer(decode(encode(np.ascontiguousarray(rgba).tobytes(), cols, rows), cols, rows), np.uint8)
-        return bgra.reshape(rows, cols, 4)[:height, :width, [2, 1, 0]]
-    return lambda mesh, rng: _each_texture(mesh, change)
+    return lambda mesh, rng: _each_texture(mesh, lambda texture: compress_blocks(texture, kind))
 
 
 def converted(mesh: Mesh, rng) -> Mesh:
@@ -103,8 +103,8 @@ def converted(mesh: Mesh, rng) -> Mesh:
 
 
 def decimated(keep: float) -> Callable:
-    """Decimated to `keep` of its faces, keeping UVs (`mesh.simplify`: quadric error, each new vertex
-    keeps the UV of one vertex that collapsed into it)."""
+    """Decimated to `keep` of its faces, keeping UVs (`mesh.simplify`: quadric error, each new vertex's
+    UV interpolated where it lies on the original surface)."""
     def attack(mesh, rng):
         from ..mesh import simplify
 

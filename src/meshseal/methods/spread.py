@@ -51,7 +51,8 @@ def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: to
 
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
-                    grids: tuple[int, ...] | None = None, compression: bool = True) -> torch.Tensor:
+                    grids: tuple[int, ...] | None = None, compression: bool = True,
+                    imports: dict | None = None) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
     original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
     `grids` (default the model's own grid alone): the cell grids to read, their sums side by side
@@ -62,11 +63,17 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     original's texture as that picture sampled it, so pictures from engines that average over the
     pixel (and resized or blurred ones) are read with a filter matched to them. With `brightness` (the
     default) each pixel's brightness relative to the prediction is fitted and taken off first (see
-    below). `whitening`: options of `models.spread.whiten` other than its defaults (experiments). Every
-    step looks at the picture and the original only, never at a key: z stays N(0, 1) without a mark."""
+    below). `imports` (`reading.imports.imported_textures` of the original; one picture at a time): the
+    original's textures as an asset's import may have changed them, the prediction made from the ones
+    that explain the picture best (`reading.imports.pick`), the mark's template still from the
+    original's own. `whitening`: options of `models.spread.whiten` other than its defaults
+    (experiments). Every step looks at the picture and the original only, never at a key: z stays
+    N(0, 1) without a mark."""
     from ..models.spread import cell_sums, whiten
     from ..render import sample_textures
     from ..render.renderer import per_fragment
+
+    from dataclasses import replace
 
     encoder = model.texture_encoder
     found = relit_residual(mesh, image, cameras)
@@ -74,6 +81,13 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     with torch.no_grad():
         # An untextured material carries no mark: weight 0 (a None texture would sample as white).
         masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
+        if imports and n_images == 1:  # the textures as the picture's asset had them, where they explain it
+            from ..reading.imports import pick
+
+            chosen = pick(found, mesh.textures, imports, (n_images, height, width))
+            if chosen is not None:
+                mesh = replace(mesh, textures=imports[chosen])
+                found = relit_residual(mesh, image, cameras)
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
         pixel = found.fragments.pixel.index_select(0, found.keep)
         sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
@@ -157,7 +171,7 @@ class SpreadMethod(Method):
     name = "spread"
     params_named = ("n_bits", "chips", "coarse_chips", "coarse_below", "fine_chips", "fine_above", "mark_colour",
                     "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "read_highpass",
-                    "read_window", "read_brightness", "read_affine")
+                    "read_window", "read_brightness", "read_affine", "read_imports")
     informed = True
     calibrated = True
     takes_strength = True
@@ -168,6 +182,7 @@ class SpreadMethod(Method):
         super().__init__(model)
         self.encoder = model.texture_encoder
         self._grids_of: tuple | None = None  # (prepared original, its grids_to_read)
+        self._imports_of: tuple | None = None  # (prepared original, its textures as imports make them)
 
     def describe(self) -> str:
         """The model card's sentence on the embedder and the extractor."""
@@ -255,7 +270,19 @@ class SpreadMethod(Method):
     def evidence(self, original, picture, camera):
         """Matched-filter cell sums of every grid a mark may use on this mesh, side by side
         (`soft_bits` splits them)."""
-        return spread_evidence(self.model, original, picture, camera, grids=self.grids_to_read(original))[0].cpu()
+        return spread_evidence(self.model, original, picture, camera, grids=self.grids_to_read(original),
+                               imports=self.imports_of(original))[0].cpu()
+
+    def imports_of(self, original) -> dict | None:
+        """The prepared original's textures as an asset's import may have changed them
+        (`reading.imports`), made once for it; None where the model's `read_imports` is off."""
+        if not self.model.config.read_imports:
+            return None
+        if self._imports_of is None or self._imports_of[0] is not original:
+            from ..reading.imports import imported_textures
+
+            self._imports_of = (original, imported_textures(list(original.textures)))
+        return self._imports_of[1]
 
     def read_pictures(self, original, pictures, cameras, key_seed=None) -> torch.Tensor:
         """Soft bits (B, N) of pictures (B, 3, H, W) of the prepared `original` seen from `cameras`,

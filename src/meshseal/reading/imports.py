@@ -1,0 +1,94 @@
+"""What an asset's import may have done to its textures before the picture was made, as the reading
+predicts it.
+
+An engine or a store rarely shows the textures the owner made: it caps their size (a 2048^2 texture
+halved or quartered), block-compresses them for the GPU (BC1, the usual RGB format) or re-saves them as
+JPEG. Of these the size cap is the one the reading has to predict: a halved texture keeps most of the
+mark (it is smooth at the scale halving changes), but a picture of such an asset read against the
+original's own textures leaves the detail the cap took in the residual, tens of times the mark (a
+codec takes part of the mark itself, and predicting it gains nothing: see `IMPORTS`). So the reading
+predicts the picture from the original's textures as given and as each import in `IMPORTS` makes
+them, and `pick` keeps, per picture, the candidate whose prediction explains the picture best. The pick looks at the picture and the original only, never at a key, so
+the matched filter's p-values stay exact (no correction for the candidates tried).
+
+The texture functions work on 8-bit arrays (H, W, 3), as image files and GPUs hold them; the asset
+attack `texture_half` of `evaluation.asset_attacks` is made of the same `resized`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+# A candidate is taken where its residual detail (the residual's energy after the whitening's high-pass)
+# is under this share of that of the textures as given: a clear gain, not a coin toss between near-equals.
+PICK_BELOW = 0.8
+PICK_HIGHPASS = 1.5  # the high-pass of the residual the pick compares (Gaussian sigma, px)
+
+
+def resized(texture: np.ndarray, factor: float) -> np.ndarray:
+    """An 8-bit texture (H, W, 3) resized by `factor` (Pillow's antialiased bicubic, at least 4 texels)."""
+    from PIL import Image
+
+    height, width = texture.shape[:2]
+    size = (max(4, round(width * factor)), max(4, round(height * factor)))
+    return np.array(Image.fromarray(texture).resize(size, Image.Resampling.BICUBIC))
+
+
+# The imports the reading tries, each a function of an 8-bit texture (H, W, 3): an engine's size cap.
+# Not among them: a texture re-saved as JPEG or block-compressed (BC1, BC7). Read against the original
+# put through the same codec, pictures of such assets read no better than against the original as it is
+# (the codec takes the mark itself, not the prediction; docs/reading.md), and trying them costs time.
+IMPORTS = {
+    "halved": lambda texture: resized(texture, 0.5),
+    "quartered": lambda texture: resized(texture, 0.25),
+}
+
+
+def to_bytes(texture: torch.Tensor) -> np.ndarray:
+    """A texture (H, W, 3 or 4) of floats in [0, 1] -> 8-bit (H, W, 3), as an image file holds it."""
+    return np.round(texture.detach().cpu().float()[..., :3].clamp(0, 1).numpy() * 255).astype(np.uint8)
+
+
+def imported_textures(textures: list) -> dict[str, list]:
+    """The textures (3, H, W) of a prepared original (None: untextured) as each import of `IMPORTS`
+    makes them, by name; none that would leave a texture under 4 texels a side."""
+    out = {}
+    for name, change in IMPORTS.items():
+        if name == "quartered" and any(t is not None and min(t.shape[-2:]) < 16 for t in textures):
+            continue
+        out[name] = [None if t is None else
+                     torch.from_numpy(change(to_bytes(t.permute(1, 2, 0)))).to(t.device, t.dtype).permute(2, 0, 1).div(255.0).contiguous()
+                     for t in textures]
+    return out
+
+
+def pick(found, textures: list, candidates: dict[str, list], shape: tuple[int, int, int]) -> str | None:
+    """The import whose textures predict one picture best, or None for the textures as given.
+
+    `found` (`relight.RelitResidual` of the original as given: the picture seen at its covered pixels,
+    the prediction there, its albedo and texture coordinates), `textures` the original's (3, H, W) and
+    `candidates` (`imported_textures`). Each candidate's prediction is the relit prediction with its
+    albedo changed by what the import changed at each pixel's texture coordinates (times the shading
+    there); the residual's detail (after a Gaussian high-pass of PICK_HIGHPASS px) is compared with
+    that of the textures as given, and a candidate is taken where it is under PICK_BELOW of it. Only the
+    picture and the original are looked at."""
+    from ..models.spread import local_mean
+    from ..render import sample_textures
+
+    if not candidates or found.seen.shape[0] == 0:
+        return None
+    pixel = found.fragments.pixel.index_select(0, found.keep)
+    shading = (found.expected / found.albedo.clamp_min(0.02)).clamp(0.0, 3.0)
+    given = sample_textures(textures, found.uv, found.material)
+
+    def detail(expected: torch.Tensor) -> float:
+        residual = found.seen - expected
+        return float(((residual - local_mean(residual, pixel, shape, PICK_HIGHPASS)) ** 2).sum())
+
+    scores = {None: detail(found.expected)}
+    for name, changed in candidates.items():
+        delta = sample_textures(changed, found.uv, found.material) - given
+        scores[name] = detail(found.expected + shading * delta)
+    best = min(scores, key=lambda name: scores[name])
+    return best if best is not None and scores[best] < PICK_BELOW * scores[None] else None

@@ -1,0 +1,79 @@
+"""Reading a picture of an asset whose textures an import changed (`meshseal.reading.imports`): the
+prediction is made from the original's textures as that import makes them, picked by how well they
+explain the picture, without a key."""
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshseal.api import load as load_model
+from meshseal.evaluation import asset_attacks
+from meshseal.mesh import load, normalize, to_z_up
+from meshseal.reading import imports
+from meshseal.render import MeshBatch, MeshRenderer
+from meshseal.render.views import sample_views
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+def test_imported_textures_are_the_asset_attacks_own():
+    """The reading's halved candidate is `meshseal eval`'s `texture_half` attack."""
+    texture = torch.rand(3, 32, 40, generator=torch.Generator().manual_seed(0))
+    made = imports.imported_textures([texture, None])
+    assert made["halved"][0].shape == (3, 16, 20) and made["halved"][1] is None
+    assert made["quartered"][0].shape == (3, 8, 10)
+    expected = asset_attacks.texture_resize(0.5)
+    from meshseal.mesh import Material, Mesh
+
+    mesh = Mesh(torch.zeros(3, 3), None, torch.tensor([[0, 1, 2]]), torch.zeros(3, 2),
+                materials=[Material(texture=texture.permute(1, 2, 0))])
+    assert torch.equal(expected(mesh, None).materials[0].texture.permute(2, 0, 1), made["halved"][0])
+    assert set(made) == {"halved", "quartered"}
+
+
+def _picture(mesh, size=256):
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        image = MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(mesh))), cameras, lights, size, size).image
+    return (torch.round(image.clamp(0, 1) * 255) / 255)[0].permute(1, 2, 0).numpy(), cameras
+
+
+def test_a_picture_of_an_asset_with_halved_textures_reads_against_the_halved_original():
+    """The marked bunny's texture halved (an engine's size cap) before its picture: the reading picks
+    'halved' and reads the message; its clean picture picks the textures as given; a picture of the
+    unmarked bunny with halved textures is not detected (the pick itself finds no mark)."""
+    wm = load_model("default")
+    assert wm.model.config.read_imports
+    bunny = load(FIXTURES / "bunny.glb")
+    original = wm.original(bunny)
+    marked = wm.embed(bunny, "ab42")
+    halve = asset_attacks.texture_resize(0.5)
+    picked = []
+    real_pick = imports.pick
+
+    def recording(*args, **kwargs):
+        picked.append(real_pick(*args, **kwargs))
+        return picked[-1]
+
+    imports.pick = recording
+    try:
+        results = {}
+        for name, shown in (("clean", marked), ("halved", halve(marked, None)), ("unmarked", halve(bunny, None))):
+            picture, cameras = _picture(shown)
+            results[name] = wm.decide([wm.read(picture, original, camera=cameras)])
+    finally:
+        imports.pick = real_pick
+    assert picked == [None, "halved", "halved"]
+    assert results["clean"].detected and results["clean"].message == "ab42"
+    assert results["halved"].detected and results["halved"].message == "ab42"
+    assert not results["unmarked"].detected and results["unmarked"].p_value > 1e-3
+
+
+def test_without_read_imports_the_textures_are_taken_as_given():
+    wm = load_model("default")
+    wm.model.config.read_imports = False
+    try:
+        assert wm.method.imports_of(wm.original(load(FIXTURES / "bunny.glb"))) is None
+    finally:
+        wm.model.config.read_imports = True
