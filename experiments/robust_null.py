@@ -1,5 +1,6 @@
 """False positives after the web's attacks: unmarked test meshes, rendered from seeded views, saved as
-8-bit PNG, put through each attack and read with the camera known (or, `--register`, without it) by a spread model (default: `robust`,
+8-bit PNG, put through each attack (an asset attack of `meshseal.evaluation.asset_attacks`, such as
+`texture_half`: on the unmarked mesh before its picture) and read with the camera known (or, `--register`, without it) by a spread model (default: `robust`,
 whose reading picks the picture's codec). Without a mark the detection p-values must be uniform or
 larger: reports per attack the pictures, how many reach the FPR 1e-6 threshold, the smallest p-value,
 the share under 0.01 and 0.1, and a Kolmogorov-Smirnov p-value against uniform.
@@ -22,7 +23,10 @@ from scipy import stats
 import meshseal
 from meshseal import payload
 from meshseal.data.dataset import MeshDataset, collate
+from meshseal.evaluation.asset_attacks import ASSET_ATTACKS
+from meshseal.evaluation.asset_attacks import apply as attack_asset
 from meshseal.evaluation.attacks import apply, parse
+from meshseal.mesh import Material, Mesh
 from meshseal.methods.batches import charted_item
 from meshseal.render import MeshBatch, MeshRenderer
 from meshseal.render.views import sample_views
@@ -51,17 +55,26 @@ def main() -> None:
         batch = charted_item(collate([dataset[index]], "cpu"))
         original = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces", "texture")))
         cameras, lights = sample_views(args.views, "seed", generator)
+        backgrounds = random_backgrounds(args.views, generator)
+        as_bytes = lambda image: (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         with torch.no_grad():
-            pictures = MeshRenderer()(original, cameras, lights, 256, 256, random_backgrounds(args.views, generator)).image
+            pictures = MeshRenderer()(original, cameras, lights, 256, 256, backgrounds).image
+            assets = {}  # the pictures of each asset attack's mesh, in the same views
+            mesh = Mesh(batch["positions"][0], batch["normals"][0], batch["faces"][0], batch["uvs"][0],
+                        materials=[Material(texture=batch["texture"][0].permute(1, 2, 0))])
+            for name in (n for n in attacks if n in ASSET_ATTACKS):
+                hit = MeshBatch.from_mesh(attack_asset(name, mesh, rng))
+                assets[name] = MeshRenderer()(hit, cameras, lights, 256, 256, backgrounds).image
         for view in range(args.views):
-            clean = (pictures[view].clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+            clean = as_bytes(pictures[view])
             for name in attacks:
+                picture = as_bytes(assets[name][view]) if name in assets else apply(name, clean, rng)
                 try:
                     if args.register:
-                        reading = watermarker.read(apply(name, clean, rng), original, register=True)
+                        reading = watermarker.read(picture, original, register=True)
                         reading = watermarker.look_again(reading, original)
                     else:
-                        reading = watermarker.read(apply(name, clean, rng), original, camera=cameras[[view]])
+                        reading = watermarker.read(picture, original, camera=cameras[[view]])
                 except meshseal.MeshsealError:
                     continue
                 p_values[name].append(watermarker.decide([reading]).p_value)

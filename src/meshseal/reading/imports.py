@@ -5,11 +5,12 @@ An engine or a store rarely shows the textures the owner made: it caps their siz
 halved or quartered), block-compresses them for the GPU (BC1, the usual RGB format) or re-saves them as
 JPEG. Of these the size cap is the one the reading has to predict: a halved texture keeps most of the
 mark (it is smooth at the scale halving changes), but a picture of such an asset read against the
-original's own textures leaves the detail the cap took in the residual, tens of times the mark (a
-codec takes part of the mark itself, and predicting it gains nothing: see `IMPORTS`). So the reading
-predicts the picture from the original's textures as given and as each import in `IMPORTS` makes
-them, and `pick` keeps, per picture, the candidate whose prediction explains the picture best. The pick looks at the picture and the original only, never at a key, so
-the matched filter's p-values stay exact (no correction for the candidates tried).
+original's own textures leaves the detail the cap took in the residual, tens of times the mark (why
+the codecs are not predicted: see `IMPORTS`). So the reading predicts the picture from the original's
+textures as given and as each import in `IMPORTS` makes them, and `pick` keeps, per picture, the
+candidate whose prediction explains the picture best. The pick looks at the picture and the original
+only, never at a key, so the matched filter's p-values stay exact (no correction for the candidates
+tried).
 
 The texture functions work on 8-bit arrays (H, W, 3), as image files and GPUs hold them; the asset
 attack `texture_half` of `evaluation.asset_attacks` is made of the same `resized`.
@@ -36,9 +37,10 @@ def resized(texture: np.ndarray, factor: float) -> np.ndarray:
 
 
 # The imports the reading tries, each a function of an 8-bit texture (H, W, 3): an engine's size cap.
-# Not among them: a texture re-saved as JPEG or block-compressed (BC1, BC7). Read against the original
-# put through the same codec, pictures of such assets read no better than against the original as it is
-# (the codec takes the mark itself, not the prediction; docs/reading.md), and trying them costs time.
+# Not among them: block compression (BC1: read against the original compressed the same way, pictures
+# of a BC1 asset read no better, the codec took the mark itself; BC7 changes a texture by about a
+# level) and a JPEG re-save (it gained pictures of JPEG-saved textures, but pictures saved as JPEG
+# picked it too and read worse; docs/results.md).
 IMPORTS = {
     "halved": lambda texture: resized(texture, 0.5),
     "quartered": lambda texture: resized(texture, 0.25),
