@@ -99,7 +99,7 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
 
             before = expected
             expected, chosen = codecs.recompressed(image, expected, pixel)
-            if fit < 0.0:  # no brightness fit: the residual as it is, a JPEG's read through its quantiser
+            if fit < 0.0 and codecs.reads_quantiser(image, chosen):  # no brightness fit: a JPEG read through its quantiser
                 if model.config.read_affine > 0.0:  # the unrounded prediction as another engine showed it
                     before = _affine_where_it_fits(found.seen, before, encoder.colour.to(image), pixel,
                                                    (n_images, height, width), model.config.read_affine,

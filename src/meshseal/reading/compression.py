@@ -293,6 +293,20 @@ def expect_luma(image: torch.Tensor, tables: list) -> None:
     _LUMA[:] = [(image, image._version, list(tables))] + [entry for entry in _LUMA if entry[0] is not image][:3]
 
 
+def _luma_tables(image: torch.Tensor, chosen: list) -> list:
+    """Each picture's JPEG luminance steps (8, 8), or None where it is not a JPEG of known steps (its
+    file's, `expect_luma`, else those of the codec `recompressed` found: `chosen`)."""
+    own = _known(image, _LUMA) or [None] * len(chosen)
+    return [table if table is not None else jpeg_luma_table(codec) for table, codec in zip(own, chosen)]
+
+
+def reads_quantiser(image: torch.Tensor, chosen: list, sigma: float | None = None) -> bool:
+    """Whether `dequantized` reads any of the pictures through its quantiser (else it returns None), so
+    that what only it needs is not worked out for a picture it will not read."""
+    sigma = DEQUANTIZE_SIGMA if sigma is None else sigma
+    return sigma > 0 and any(t is not None for t in _luma_tables(image, chosen))
+
+
 def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor, chosen: list,
                 sigma: float | None = None) -> torch.Tensor | None:
     """The mark in luminance at the object's pixels (P,) of pictures `image` (B, 3, H, W) saved as a JPEG
@@ -301,8 +315,7 @@ def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor
     (P, 3) before the codec (`dequantized_luma`); NaN at the pixels of other pictures. None where no
     picture is such a JPEG or `sigma` (default DEQUANTIZE_SIGMA) is 0."""
     sigma = DEQUANTIZE_SIGMA if sigma is None else sigma
-    own = _known(image, _LUMA) or [None] * len(chosen)
-    tables = [table if table is not None else jpeg_luma_table(codec) for table, codec in zip(own, chosen)]
+    tables = _luma_tables(image, chosen)
     if sigma <= 0 or all(t is None for t in tables):
         return None
     n_images, _, height, width = image.shape

@@ -84,13 +84,14 @@ def pick(found, textures: list, candidates: dict[str, list], shape: tuple[int, i
     shading = (found.expected / found.albedo.clamp_min(0.02)).clamp(0.0, 3.0)
     given = sample_textures(textures, found.uv, found.material)
 
-    def detail(expected: torch.Tensor) -> float:
-        residual = found.seen - expected
-        return float(((residual - local_mean(residual, pixel, shape, PICK_HIGHPASS)) ** 2).sum())
-
-    scores = {None: detail(found.expected)}
-    for name, changed in candidates.items():
-        delta = sample_textures(changed, found.uv, found.material) - given
-        scores[name] = detail(found.expected + shading * delta)
+    # Every candidate's residual side by side (P, 3 (1 + K)): one local mean for all of them.
+    names = [None, *candidates]
+    residuals = [found.seen - found.expected]
+    for name in names[1:]:
+        delta = sample_textures(candidates[name], found.uv, found.material) - given
+        residuals.append(found.seen - (found.expected + shading * delta))
+    stacked = torch.cat(residuals, 1)
+    detail = ((stacked - local_mean(stacked, pixel, shape, PICK_HIGHPASS)) ** 2).sum(0)
+    scores = dict(zip(names, detail.reshape(len(names), 3).sum(1).tolist()))
     best = min(scores, key=lambda name: scores[name])
     return best if best is not None and scores[best] < PICK_BELOW * scores[None] else None
