@@ -698,8 +698,47 @@ def test_a_resized_picture_is_predicted_as_resized(monkeypatch):
         assert bool(blurred.resized.isnan().all()) and float(blurred.sigma[0]) == 0.5
         resizing = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
         monkeypatch.setattr(spread_module, "picture_footprint", functools.partial(picture_footprint, resampled=()))
-        gaussian = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
+        # another tensor: the same one read again would keep the footprint its first reading found
+        gaussian = soft_bits(model.texture_encoder, spread_evidence(model, original, picture.clone(), cameras))
     assert float((resizing * signs).mean()) > 1.1 * float((gaussian * signs).mean()) > 0
+
+
+def test_a_picture_read_again_keeps_the_footprint_its_first_reading_found():
+    """A second look reads the same picture tensor under other cameras: the footprint found the first
+    time is kept (`footprint.chosen_before`), so the reading under the same camera is the same and no
+    search runs again; another tensor holding the same pixels searches anew."""
+    import numpy as np
+    from PIL import Image
+
+    from meshseal.methods.spread import spread_evidence
+    from meshseal.reading import footprint
+
+    grey = replace(SPREAD, mark_colour="grey", texture_psnr=34.0, read_highpass=3.0, read_window=3.0,
+                   read_brightness=-1.0)
+    model, message, original, marked = _original_and_marked_batches(grey)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        large = (MeshRenderer()(marked, cameras, lights, 256, 256).image[0].clamp(0, 1).permute(1, 2, 0) * 255).round()
+        halved = Image.fromarray(large.byte().numpy()).resize((128, 128), Image.Resampling.BICUBIC)
+        picture = torch.from_numpy(np.asarray(halved).astype(np.float32) / 255).permute(2, 0, 1)[None]
+        first = spread_evidence(model, original, picture, cameras)
+        assert footprint.chosen_before(picture) == (0.5, 0.5)  # a resized picture's footprint
+        searched = []
+        real = footprint.resampled_prediction
+
+        def counting(*args, **kwargs):
+            searched.append(args[-1])
+            return real(*args, **kwargs)
+
+        footprint.resampled_prediction = counting
+        try:
+            again = spread_evidence(model, original, picture, cameras)
+            assert searched == [0.5]  # only the factor found before
+            anew = spread_evidence(model, original, picture.clone(), cameras)
+            assert sorted(searched[1:]) == [0.5, 0.75, 1.5]
+        finally:
+            footprint.resampled_prediction = real
+    assert torch.allclose(again, first) and torch.allclose(anew, first)
 
 
 def test_a_bit_block_gives_each_bit_whole_blocks_of_cells_and_leaves_the_shipped_draws_alone():

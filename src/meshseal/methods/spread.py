@@ -90,7 +90,14 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
                 found = relit_residual(mesh, image, cameras)
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
         pixel = found.fragments.pixel.index_select(0, found.keep)
-        sampled = picture_footprint(mesh, found, cameras, height, width) if footprint else None
+        sampled = None
+        if footprint:  # a picture read before (a second look) keeps the footprint found then
+            from ..reading.footprint import chosen_before, remember_choice
+
+            known = chosen_before(image) if n_images == 1 else None
+            sampled = picture_footprint(mesh, found, cameras, height, width, known=known)
+            if n_images == 1 and known is None:
+                remember_choice(image, sampled)
         expected = found.expected if sampled is None else sampled.expected
         fit = model.config.read_brightness if brightness else -1.0
         dequantized = None

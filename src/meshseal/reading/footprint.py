@@ -89,9 +89,30 @@ def _point_samples_explain(found: RelitResidual, n_images: int, height: int, wid
     return bool(((total / count.clamp_min(1.0)).sqrt() < POINT_ENOUGH).all()) and bool((count > 0).all())
 
 
+_CHOSEN: list = []  # (picture, its version, (sigma, resized)): the footprint one picture's reading chose
+
+
+def chosen_before(image: torch.Tensor) -> tuple[float, float] | None:
+    """The footprint (template sigma, resized factor; NaN: none) that reading the one picture `image`
+    (1, 3, H, W) chose before, as long as the tensor is unchanged (a second look reads it again under
+    other cameras; its sampling has not changed), or None."""
+    for kept, version, choice in _CHOSEN:
+        if (kept.data_ptr(), kept.shape, kept.dtype, version) == (image.data_ptr(), image.shape, image.dtype,
+                                                                  image._version):
+            return choice
+    return None
+
+
+def remember_choice(image: torch.Tensor, footprint: "Footprint") -> None:
+    """Keep the footprint a reading of the one picture `image` chose, for `chosen_before`."""
+    resized = float("nan") if footprint.resized is None else float(footprint.resized[0])
+    choice = (float(footprint.sigma[0]), resized)
+    _CHOSEN[:] = [(image, image._version, choice)] + [entry for entry in _CHOSEN if entry[0] is not image][:3]
+
+
 def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,
                       sigmas: tuple[float, ...] = FOOTPRINT_SIGMAS,
-                      resampled: tuple[float, ...] = RESAMPLED) -> Footprint:
+                      resampled: tuple[float, ...] = RESAMPLED, known: tuple[float, float] | None = None) -> Footprint:
     """Pick, per picture, the footprint (point samples, or the pixel area blurred by one of `sigmas`)
     under which the relit original best predicts the picture's fine detail: the largest normalised
     correlation between the picture and the prediction, both high-passed (their local mean over the
@@ -101,7 +122,9 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     wins, the original rendered at another size and resized to the picture's (`resampled` factors,
     `resampled_prediction`) is tried too: a resized picture's bicubic filter is not a Gaussian, and
     the luminance of a texture's edges shows the difference. The choice looks at
-    the picture and the original only, never at a key, so the matched filter's null stays the same."""
+    the picture and the original only, never at a key, so the matched filter's null stays the same.
+    `known` (one picture: `chosen_before`): the footprint a reading of this picture chose before, the
+    only one tried beside point samples and the pixel's area (point samples: taken at once)."""
     from ..imaging import blur_radius
     from ..models.spread import local_mean, within_reach
     from ..render import rasterize
@@ -112,6 +135,14 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     scale = supersampling(height, width)
     n_images = len(cameras)
     relit = found.relit
+    forced = False
+    if known is not None and n_images == 1:
+        sigma, factor = known
+        if sigma != sigma:  # read with point samples before: so again
+            point = torch.full((1,), float("nan"), device=found.expected.device)
+            return Footprint(found.expected, torch.ones_like(found.keep, dtype=torch.bool), point, None, None, scale)
+        forced = factor == factor
+        sigmas, resampled = ((), (factor,)) if forced else ((sigma,), ())
     if _point_samples_explain(found, n_images, height, width):  # nothing finer to find: no supersampled render
         point = torch.full((n_images,), float("nan"), device=found.expected.device)
         return Footprint(found.expected, torch.ones_like(found.keep, dtype=torch.bool), point, None, None, scale)
@@ -156,7 +187,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     choice = scores.argmax(1)  # (B,); a picture with nothing to compare keeps point samples
     template_sigmas = (float("nan"),) + widths
     resampled = tuple(f for f in resampled if max(height, width) / f <= RESAMPLED_LARGEST)
-    if resampled and bool((choice > 0).any()):  # a blurred picture: was it resized from another size?
+    if resampled and (forced or bool((choice > 0).any())):  # a blurred picture: was it resized from another size?
         more = [pick_full(resampled_prediction(relit, cameras, found.lights, height, width, factor), kept)
                 for factor in resampled]
         extra = torch.stack(more, 1)[usable]
