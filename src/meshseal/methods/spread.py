@@ -4,6 +4,8 @@ relit to match it. Its soft bits are z-scores with an exact null (`payload`)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from ..imaging import gaussian_blur
@@ -66,14 +68,13 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     below). `imports` (`reading.imports.imported_textures` of the original; one picture at a time): the
     original's textures as an asset's import may have changed them, the prediction made from the ones
     that explain the picture best (`reading.imports.pick`), the mark's template still from the
-    original's own. `whitening`: options of `models.spread.whiten` other than its defaults
-    (experiments). Every step looks at the picture and the original only, never at a key: z stays
-    N(0, 1) without a mark."""
+    original's own. One picture read again (the same tensor: a second look) keeps the footprint its
+    first reading found (`reading.footprint.chosen_before`). `whitening`: options of
+    `models.spread.whiten` other than its defaults (experiments). Every step looks at the picture and
+    the original only, never at a key: z stays N(0, 1) without a mark."""
     from ..models.spread import cell_sums, whiten
     from ..render import sample_textures
     from ..render.renderer import per_fragment
-
-    from dataclasses import replace
 
     encoder = model.texture_encoder
     found = relit_residual(mesh, image, cameras)
