@@ -602,6 +602,33 @@ def test_a_camera_a_fraction_of_a_pixel_off_is_sharpened_on_the_reading_residual
     assert ((torch.tensor([int(b) for b in decision.bits]) == message[0]).float().mean()) >= 0.95
 
 
+def test_a_second_look_sharpens_only_a_reading_that_hints_at_a_mark(monkeypatch):
+    """Sharpening costs a second look its renders: the unmarked bunny's registered reading (no hint, p
+    above SHARPEN_BELOW) is not sharpened; with the bar at 1 it is, and the p-value pays the same x2R
+    either way (every stage is paid for, tried or not)."""
+    import meshseal.reading.registration as registration
+    import meshseal.reading.second_look as api
+    from meshseal.api import Watermarker
+
+    model, message, original, marked = _original_and_marked_batches()
+    watermarker = Watermarker(model)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        picture = _quantise(MeshRenderer()(original, cameras, lights, 256, 256).image)
+    mask = picture[0].sum(0) > 0
+    reading = watermarker.read(picture[0].permute(1, 2, 0).numpy(), original, camera=cameras)
+    first = replace(reading, camera="registered", second_look=(picture, mask, ()))
+    assert watermarker.decide([replace(first, second_look=())]).p_value > api.SHARPEN_BELOW
+    calls = []
+    real = registration.sharpen
+    monkeypatch.setattr(registration, "sharpen", lambda *args, **kwargs: calls.append(1) or real(*args, **kwargs))
+    again = watermarker.look_again(first, original)
+    assert calls == [] and not watermarker.decide([again]).detected and again.tries == 2
+    monkeypatch.setattr(api, "SHARPEN_BELOW", 1.0)
+    watermarker.look_again(first, original)
+    assert len(calls) == 1  # one round: its reading hints at nothing either
+
+
 def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_mark():
     """Where the registered reading shows no hint of a mark, each alternative is read rough (refined on
     its silhouettes alone) and finished on the texture only if that reading hints at one: the twin
