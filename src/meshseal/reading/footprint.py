@@ -3,6 +3,7 @@ and the linear-light part of a residual that a tone curve leaves (`take_off_line
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -138,10 +139,10 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     forced = False
     if known is not None and n_images == 1:
         sigma, factor = known
-        if sigma != sigma:  # read with point samples before: so again
+        if math.isnan(sigma):  # read with point samples before: so again
             point = torch.full((1,), float("nan"), device=found.expected.device)
             return Footprint(found.expected, torch.ones_like(found.keep, dtype=torch.bool), point, None, None, scale)
-        forced = factor == factor
+        forced = not math.isnan(factor)
         sigmas, resampled = ((), (factor,)) if forced else ((sigma,), ())
     if _point_samples_explain(found, n_images, height, width):  # nothing finer to find: no supersampled render
         point = torch.full((n_images,), float("nan"), device=found.expected.device)

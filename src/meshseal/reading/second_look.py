@@ -9,10 +9,10 @@ from .read import Reading
 
 SHARPEN_ROUNDS = 2  # a second look sharpens the registered camera again (light refitted) where the first round's reading hints at a mark
 LOOK_AGAIN_BELOW = 0.05  # a second look finishes the other views where the first reading's p-value is under this, else those whose rough reading's is
-# A second look sharpens the camera only where the first reading's p-value is at most this: on 155
-# registered test pictures (40 test meshes, clean, JPEG 75, halved, cropped) every picture sharpening
-# or another view found had a first p of 0.34 or less, and an unmarked picture's first p is mostly above
-# it (sharpening costs it its 150 renders for nothing).
+# A second look sharpens the camera only where the first reading's p-value is at most this: the marked
+# pictures a second look finds already hint at their mark there (docs/reading.md, stage 7, has the
+# pictures it was set on), and an unmarked picture's first p is mostly above it (sharpening would cost
+# it its renders for nothing).
 SHARPEN_BELOW = 0.5
 
 
