@@ -17,6 +17,8 @@ import io
 import numpy as np
 import torch
 
+from .kept import keep_with, kept_with
+
 # (format, quality, subsampling): JPEG subsampling 2 is 4:2:0 (Pillow's default), 0 is 4:4:4.
 CODECS = ([("JPEG", q, 2) for q in (95, 90, 85, 80, 75, 70, 60, 50, 40)]
           + [("JPEG", q, 0) for q in (98, 95, 90, 85, 75)]
@@ -112,18 +114,14 @@ _FOUND: list = []  # (picture, its version, the candidate codecs per image): a p
 def _known(image: torch.Tensor, registry: list | None = None):
     """What `registry` (default _FOUND: (pictures, their version, one entry a picture)) keeps for the
     tensor `image`, as long as it is unchanged; None if nothing."""
-    for kept, version, entries in (_FOUND if registry is None else registry):
-        if (kept.data_ptr(), kept.shape, kept.dtype, version) == (image.data_ptr(), image.shape, image.dtype,
-                                                                  image._version):
-            return entries
-    return None
+    return kept_with(image, _FOUND if registry is None else registry)
 
 
 _PHASES: list = []  # (pictures, their version, each one's JPEG block-grid phase (dy, dx) `recompressed` found)
 
 
 def _remember(image: torch.Tensor, candidates: list) -> None:
-    _FOUND[:] = [(image, image._version, candidates)] + [entry for entry in _FOUND if entry[0] is not image][:3]
+    keep_with(image, _FOUND, candidates)
 
 
 def expect(image: torch.Tensor, candidates: list) -> None:
@@ -186,7 +184,7 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
         if best is not None:
             out[mine] = torch.from_numpy(values / 255.0).to(out)
     if searched:  # the grid each picture's codec fitted at, for a second look and the quantiser read
-        _PHASES[:] = [(image, image._version, found_phases)] + [e for e in _PHASES if e[0] is not image][:3]
+        keep_with(image, _PHASES, found_phases)
     if known is None:
         _remember(image, [[] if codec is None else [codec] for codec in chosen])
     return out, chosen
@@ -290,7 +288,7 @@ def expect_luma(image: torch.Tensor, tables: list) -> None:
     than through the steps of the codec the search found (a quality or an encoder not listed)."""
     if len(tables) != image.shape[0]:
         raise ValueError(f"expected tables for {image.shape[0]} pictures, got {len(tables)}")
-    _LUMA[:] = [(image, image._version, list(tables))] + [entry for entry in _LUMA if entry[0] is not image][:3]
+    keep_with(image, _LUMA, list(tables))
 
 
 def _luma_tables(image: torch.Tensor, chosen: list) -> list:

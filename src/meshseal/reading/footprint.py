@@ -14,6 +14,7 @@ from ..render import (
     MeshBatch,
     MeshRenderer,
 )
+from .kept import keep_with, kept_with
 from .relight import RelitResidual
 
 FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
@@ -97,18 +98,14 @@ def chosen_before(image: torch.Tensor) -> tuple[float, float] | None:
     """The footprint (template sigma, resized factor; NaN: none) that reading the one picture `image`
     (1, 3, H, W) chose before, as long as the tensor is unchanged (a second look reads it again under
     other cameras; its sampling has not changed), or None."""
-    for kept, version, choice in _CHOSEN:
-        if (kept.data_ptr(), kept.shape, kept.dtype, version) == (image.data_ptr(), image.shape, image.dtype,
-                                                                  image._version):
-            return choice
-    return None
+    return kept_with(image, _CHOSEN)
 
 
 def remember_choice(image: torch.Tensor, footprint: "Footprint") -> None:
     """Keep the footprint a reading of the one picture `image` chose, for `chosen_before`."""
     resized = float("nan") if footprint.resized is None else float(footprint.resized[0])
     choice = (float(footprint.sigma[0]), resized)
-    _CHOSEN[:] = [(image, image._version, choice)] + [entry for entry in _CHOSEN if entry[0] is not image][:3]
+    keep_with(image, _CHOSEN, choice)
 
 
 def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,
