@@ -77,3 +77,49 @@ def test_without_read_imports_the_textures_are_taken_as_given():
         assert wm.method.imports_of(wm.original(load(FIXTURES / "bunny.glb"))) is None
     finally:
         wm.model.config.read_imports = True
+
+
+def test_recomputed_normals_are_a_candidate_only_where_they_differ():
+    """A prepared original whose normals are those its faces give has no normals candidate; one with
+    authored normals (the bunny's) has them recomputed as the loader recomputes them."""
+    from dataclasses import replace
+
+    from meshseal.mesh.preprocess import vertex_normals
+
+    wm = load_model("default")
+    original = wm.original(load(FIXTURES / "bunny.glb"))
+    made = imports.imported(original)
+    assert made.normals is not None and made.normals.shape == original.normals.shape
+    assert torch.allclose(made.normals[0], vertex_normals(original.positions[0], original.faces.reshape(-1, 3)))
+    assert imports.imported(replace(original, normals=made.normals)).normals is None
+    assert set(made.textures) == {"halved", "quartered"}
+
+
+def test_a_picture_of_a_converted_asset_reads_against_the_recomputed_normals():
+    """Suzanne marked, then converted GLB -> OBJ by trimesh (`obj_glb`: its normals recomputed from the
+    faces on loading): the reading picks the recomputed normals and reads the message; the clean
+    picture keeps the given ones; the unmarked suzanne converted is not detected."""
+    wm = load_model("default")
+    suzanne = load(FIXTURES / "suzanne.glb")
+    original = wm.original(suzanne)
+    marked = wm.embed(suzanne, "ab42")
+    picked = []
+    real_pick = imports.pick_normals
+
+    def recording(*args, **kwargs):
+        picked.append(real_pick(*args, **kwargs))
+        return picked[-1]
+
+    imports.pick_normals = recording
+    try:
+        results = {}
+        for name, shown in (("clean", marked), ("converted", asset_attacks.converted(marked, None)),
+                            ("unmarked", asset_attacks.converted(suzanne, None))):
+            picture, cameras = _picture(shown)
+            results[name] = wm.decide([wm.read(picture, original, camera=cameras)])
+    finally:
+        imports.pick_normals = real_pick
+    assert picked == [False, True, True]
+    assert results["clean"].detected and results["clean"].message == "ab42"
+    assert results["converted"].detected and results["converted"].message == "ab42"
+    assert not results["unmarked"].detected and results["unmarked"].p_value > 1e-3

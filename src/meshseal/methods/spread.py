@@ -54,7 +54,7 @@ def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: to
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
                     grids: tuple[int, ...] | None = None, compression: bool = True,
-                    imports: dict | None = None) -> torch.Tensor:
+                    imports=None) -> torch.Tensor:
     """A spread-spectrum model's matched-filter cell sums (B, C*C) for pictures (B, 3, H, W) of the
     original `mesh` taken with `cameras` (see `models.spread.cell_sums`; pictures pool by adding them).
     `grids` (default the model's own grid alone): the cell grids to read, their sums side by side
@@ -65,10 +65,10 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     original's texture as that picture sampled it, so pictures from engines that average over the
     pixel (and resized or blurred ones) are read with a filter matched to them. With `brightness` (the
     default) each pixel's brightness relative to the prediction is fitted and taken off first (see
-    below). `imports` (`reading.imports.imported_textures` of the original; one picture at a time): the
-    original's textures as an asset's import may have changed them, the prediction made from the ones
-    that explain the picture best (`reading.imports.pick`), the mark's template still from the
-    original's own. One picture read again (the same tensor: a second look) keeps the footprint its
+    below). `imports` (`reading.imports.Imports` of the original; one picture at a time): the
+    original's normals and textures as an asset's import may have changed them, the prediction made
+    from the ones that explain the picture best (`reading.imports.pick_normals`, `pick`), the mark's
+    template still from the original's own textures. One picture read again (the same tensor: a second look) keeps the footprint its
     first reading found (`reading.footprint.chosen_before`). `whitening`: options of
     `models.spread.whiten` other than its defaults (experiments). Every step looks at the picture and
     the original only, never at a key: z stays N(0, 1) without a mark."""
@@ -82,12 +82,15 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     with torch.no_grad():
         # An untextured material carries no mark: weight 0 (a None texture would sample as white).
         masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
-        if imports and n_images == 1:  # the textures as the picture's asset had them, where they explain it
-            from ..reading.imports import pick
+        if imports is not None and n_images == 1:  # the asset as its import made it, where that explains the picture
+            from ..reading.imports import pick, pick_normals
 
-            chosen = pick(found, mesh.textures, imports, (n_images, height, width))
+            if imports.normals is not None and pick_normals(found, imports.normals, cameras, (n_images, height, width)):
+                mesh = replace(mesh, normals=imports.normals)
+                found = relit_residual(mesh, image, cameras)
+            chosen = pick(found, mesh.textures, imports.textures, (n_images, height, width))
             if chosen is not None:
-                mesh = replace(mesh, textures=imports[chosen])
+                mesh = replace(mesh, textures=imports.textures[chosen])
                 found = relit_residual(mesh, image, cameras)
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
         pixel = found.fragments.pixel.index_select(0, found.keep)
@@ -190,7 +193,7 @@ class SpreadMethod(Method):
         super().__init__(model)
         self.encoder = model.texture_encoder
         self._grids_of: tuple | None = None  # (prepared original, its grids_to_read)
-        self._imports_of: tuple | None = None  # (prepared original, its textures as imports make them)
+        self._imports_of: tuple | None = None  # (prepared original, its `reading.imports.Imports`)
 
     def describe(self) -> str:
         """The model card's sentence on the embedder and the extractor."""
@@ -281,15 +284,15 @@ class SpreadMethod(Method):
         return spread_evidence(self.model, original, picture, camera, grids=self.grids_to_read(original),
                                imports=self.imports_of(original))[0].cpu()
 
-    def imports_of(self, original) -> dict | None:
-        """The prepared original's textures as an asset's import may have changed them
-        (`reading.imports`), made once for it; None where the model's `read_imports` is off."""
+    def imports_of(self, original):
+        """The prepared original as an asset's import may have changed it (`reading.imports.Imports`:
+        its textures, its normals), made once for it; None where the model's `read_imports` is off."""
         if not self.model.config.read_imports:
             return None
         if self._imports_of is None or self._imports_of[0] is not original:
-            from ..reading.imports import imported_textures
+            from ..reading.imports import imported
 
-            self._imports_of = (original, imported_textures(list(original.textures)))
+            self._imports_of = (original, imported(original))
         return self._imports_of[1]
 
     def read_pictures(self, original, pictures, cameras, key_seed=None) -> torch.Tensor:

@@ -3,20 +3,26 @@ predicts it.
 
 An engine or a store rarely shows the textures the owner made: it caps their size (a 2048^2 texture
 halved or quartered), block-compresses them for the GPU (BC1, the usual RGB format) or re-saves them as
-JPEG. Of these the size cap is the one the reading has to predict: a halved texture keeps most of the
+JPEG; a converter or an importer that finds no normals in the file (trimesh between OBJ and GLB, a
+glTF without them) recomputes them from the faces. Of the texture changes the size cap is the one the
+reading has to predict: a halved texture keeps most of the
 mark (it is smooth at the scale halving changes), but a picture of such an asset read against the
 original's own textures leaves the detail the cap took in the residual, tens of times the mark (why
 the codecs are not predicted: see `IMPORTS`). So the reading predicts the picture from the original's
 textures as given and as each import in `IMPORTS` makes them, and `pick` keeps, per picture, the
-candidate whose prediction explains the picture best. The pick looks at the picture and the original
-only, never at a key, so the matched filter's p-values stay exact (no correction for the candidates
-tried).
+candidate whose prediction explains the picture best; likewise the original's normals as given or as
+recomputed from its faces (`pick_normals`): an authored normal (a hard edge, a bent normal) shades the
+original otherwise than the recomputed one shades the asset, by more than the mark. Every pick looks at
+the picture and the original only, never at a key, so the matched filter's p-values stay exact (no
+correction for the candidates tried).
 
 The texture functions work on 8-bit arrays (H, W, 3), as image files and GPUs hold them; the asset
 attack `texture_half` of `evaluation.asset_attacks` is made of the same `resized`.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -63,6 +69,61 @@ def imported_textures(textures: list) -> dict[str, list]:
                      torch.from_numpy(change(to_bytes(t.permute(1, 2, 0)))).to(t.device, t.dtype).permute(2, 0, 1).div(255.0).contiguous()
                      for t in textures]
     return out
+
+
+@dataclass
+class Imports:
+    """A prepared original as an asset's import may have changed it: its textures as each import of
+    `IMPORTS` makes them (`imported_textures`), and its vertex normals recomputed from the faces (B, V,
+    3), None where those are the normals it has."""
+
+    textures: dict[str, list]
+    normals: torch.Tensor | None
+
+
+# Normals recomputed from the faces are a candidate where some differ from the given ones by more than this
+# (the length of the difference of unit vectors, about the angle in radians).
+NORMALS_DIFFER = 0.05
+
+
+def imported(original) -> Imports:
+    """`Imports` of a prepared original (`render.MeshBatch` of one mesh)."""
+    from ..mesh.preprocess import vertex_normals
+
+    normals = None
+    faces = original.faces if original.faces.dim() == 2 else original.faces[0]
+    if original.positions.shape[0] == 1 and (original.faces.dim() == 2 or original.faces.shape[0] == 1):
+        recomputed = vertex_normals(original.positions[0], faces)[None].to(original.normals)
+        if float((recomputed - original.normals).norm(dim=-1).max()) > NORMALS_DIFFER:
+            normals = recomputed
+    return Imports(imported_textures(list(original.textures)), normals)
+
+
+def _detail(residual: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int]) -> float:
+    """The residual's (P, 3) energy after a Gaussian high-pass of PICK_HIGHPASS px, per pixel."""
+    from ..models.spread import local_mean
+
+    return float(((residual - local_mean(residual, pixel, shape, PICK_HIGHPASS)) ** 2).sum()) / max(1, len(residual))
+
+
+def pick_normals(found, normals: torch.Tensor, cameras, shape: tuple[int, int, int]) -> bool:
+    """Whether the recomputed `normals` (B, V, 3) predict one picture better than the original's own.
+
+    `found` (`relight.RelitResidual` of the original as given): the original is rendered again with
+    `normals` under the light fitted there, over the same pixels, and the high-passed residuals are
+    compared as `pick` compares textures (under PICK_BELOW of the given normals'). Only the picture and
+    the original are looked at."""
+    from ..render import MeshRenderer, pixels_at
+
+    if found.seen.shape[0] == 0:
+        return False
+    _, height, width = shape
+    other = MeshRenderer()(replace(found.relit, normals=normals), cameras, found.lights, height, width,
+                           fragments=found.fragments)
+    expected = pixels_at(other.image, found.fragments).index_select(0, found.keep).to(found.seen)
+    pixel = found.fragments.pixel.index_select(0, found.keep)
+    given = _detail(found.seen - found.expected, pixel, shape)
+    return _detail(found.seen - expected, pixel, shape) < PICK_BELOW * given
 
 
 def pick(found, textures: list, candidates: dict[str, list], shape: tuple[int, int, int]) -> str | None:
