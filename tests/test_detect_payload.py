@@ -51,7 +51,10 @@ def test_the_right_key_reads_the_text_and_nothing_else_does(pictures, capsys, mo
     code, results, _ = _detect(capsys, pictures / "views" / "v_1.png", "--expect", "ab42")
     assert results[0]["detected"] and results[0]["p_value"] < 1e-6
     code, results, _ = _detect(capsys, pictures / "views" / "v_1.png", "--expect", "ab43")
-    assert not results[0]["detected"] and results[0]["message"] == "ab42"
+    # The default's pilot finds the mark; the match does not name ab43 and the code reads ab42: exit 1.
+    assert code == 1 and results[0]["detected"] and results[0]["named"] is False and results[0]["message"] == "ab42"
+    assert main(["detect", str(pictures / "views" / "v_1.png"), "--mesh", BUNNY, "--expect", "ab43"]) == 1
+    assert "the match does not name \"ab43\": the code reads \"ab42\"" in capsys.readouterr().out
 
 
 def test_pooling_decides_once_and_bad_pictures_do_not_stop_the_batch(pictures, capsys):
@@ -174,7 +177,8 @@ def _cells(method, bits, mu, key, rng):
 
     encoder = method.encoder
     assign, sign = encoder.pattern(method.key_seed(key), encoder.chips)
-    cell = sign * (2 * bits[assign] - 1) * mu + torch.from_numpy(rng.standard_normal(assign.numel())).float()
+    signs = torch.cat([2 * bits - 1, torch.ones(1)])  # index n_bits: the pilot's cells, where the model has one
+    cell = sign * signs[assign] * mu + torch.from_numpy(rng.standard_normal(assign.numel())).float()
     return types.SimpleNamespace(evidence=cell, tries=1, box=None, camera="metadata", registration_iou=None)
 
 
@@ -182,7 +186,7 @@ def test_a_list_of_ids_names_the_one_carried_pays_for_its_length_and_is_never_to
     from meshseal import payload
     from meshseal.api import load
 
-    method = load("default").method
+    method = load("dense").method  # every cell carries the message (the default's pilot finds such marks: below)
     ids = tuple(range(5000, 6000))
     assert np.array_equal(payload.encode_many(ids[:50] + ("ab42",), "k").numpy(),
                           np.stack([payload.encode(m, "k").numpy() for m in ids[:50] + ("ab42",)]))
@@ -202,13 +206,21 @@ def test_a_list_of_ids_names_the_one_carried_pays_for_its_length_and_is_never_to
     # No mark: the list's p-values are conservative (no more small ones than their level allows).
     p = np.array([method.decide([_cells(method, carried, 0.0, "k", rng)], "k", ids).p_value for _ in range(300)])
     assert (p <= 0.05).mean() <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 300) and p.min() > 1e-4
+    # The default's pilot (half the cells, the key's own signs) finds as faint a mark whatever its message,
+    # where the bits' test alone misses it; the list still names it, on the message's own cells.
+    default = load("default").method
+    faint = _cells(default, carried, 0.13, "k", rng)
+    alone, listed = default.decide([faint], "k"), default.decide([faint], "k", ids)
+    assert alone.detected and alone.message is None and listed.detected and listed.message == 5123
+    assert default.pilot_pvalue(faint.evidence[None], "k") < 1e-7
 
 
 def test_detect_reads_a_list_of_ids_from_a_file(pictures, capsys, tmp_path):
     listing = tmp_path / "ids.txt"
     listing.write_text("# our buyers\n12\n\n7  # repeated below\n7\n")
     code, results, _ = _detect(capsys, pictures / "views" / "v_0.png", "--key", "s3cret", "--expect-ids", listing)
-    assert code == 1 and not results[0]["detected"] and results[0]["message"] == "ab42"  # a text mark, not an ID listed
+    # a text mark, not an ID listed: the default's pilot finds the mark, the list names none of it
+    assert code == 1 and results[0]["named"] is False and results[0]["message"] == "ab42"
     listing.write_text("12\nseven\n")
     assert main(["detect", str(pictures / "clean.png"), "--mesh", BUNNY, "--expect-ids", str(listing)]) == 2
     assert "line 2" in capsys.readouterr().err

@@ -458,10 +458,11 @@ def _assert_read_on_either_grid(wm, mesh, marked):
 def test_a_mark_too_faint_to_decode_is_found_by_its_expected_message():
     """The owner who names the message (`--expect`) tests the mark's correlation with it, which needs
     far less of the mark than the any-message test or the code: a faint mark no other test finds is
-    detected at the FPR, its message left unread; another message is not."""
+    detected at the FPR, its message left unread; another message is not. (`dense`: every cell carries
+    the message; the default's pilot finds a mark whatever its message as surely as the named test.)"""
     from meshseal.api import load as load_model
 
-    wm = load_model("default")
+    wm = load_model("dense")
     bunny = load(FIXTURES / "bunny.glb")
     original = wm.original(bunny)
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
@@ -825,3 +826,80 @@ def test_the_affine_fit_is_used_only_where_it_explains_the_misfit():
                              (0.3 + 0.5 * texture ** 0.6, True)):
         used = _affine_where_it_fits(rows(seen), rows(texture), colour, pixel, (1, height, width), 1.0, 3.0)
         assert torch.equal(used, rows(texture)) is (not expect_fit)
+
+
+def test_a_pilot_takes_its_share_of_the_cells_and_leaves_the_draws_without_it_alone():
+    """`pilot_share` gives that share of the cells to the pilot (index n_bits, the key's own signs);
+    without it the pattern is the one drawn before; the bits keep equal shares."""
+    from meshseal.models.spread import SpreadSpectrumEncoder
+
+    plain = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0)
+    assert plain.pilot_slots == 0
+    assert torch.equal(plain.assign, torch.randperm(64 * 64, generator=torch.Generator().manual_seed(0)) % 64)
+    piloted = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, pilot_share=0.5)
+    assert piloted.pilot_slots == 64 and torch.equal(piloted.sign, plain.sign)
+    for key_seed in (None, 12345):
+        assign, sign = piloted.pattern(key_seed, 64)
+        counts = torch.bincount(assign, minlength=65)
+        assert int(counts[64]) == 64 * 64 // 2 and (counts[:64] == 32).all()
+    message = torch.randint(0, 2, (1, 64), generator=torch.Generator().manual_seed(1)).float()
+    cells = piloted.cells(message).reshape(-1)
+    pilot = piloted.assign == 64
+    assert torch.equal(cells[pilot], piloted.sign[pilot])  # the pilot's cells: the key's sign alone
+    assert torch.equal(cells[~pilot], (piloted.sign * (2 * message[0] - 1)[piloted.assign.clamp_max(63)])[~pilot])
+    config = ModelConfig.from_dict({"n_bits": 64, "texture_encoder": "spread", "chips": 64, "pilot_share": 0.5})
+    assert WatermarkModel(config).texture_encoder.pilot_slots == 64
+
+
+def test_the_pilot_reads_a_mark_and_has_an_exact_null_over_keys():
+    """Cell sums of a mark under one key: the pilot's z is large under that key and weighs the pilot's
+    cells alone; under other keys its exact p-values are uniform (KS), as are the bits' own."""
+    from scipy import stats
+
+    from meshseal import payload
+    from meshseal.models.spread import SpreadSpectrumEncoder, bit_weights, pilot_z, soft_bits
+
+    encoder = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, pilot_share=0.5)
+    generator = torch.Generator().manual_seed(0)
+    message = torch.randint(0, 2, (1, 64), generator=generator).float()
+    noise = torch.randn(64 * 64, generator=generator, dtype=torch.float64) ** 3  # heavy-tailed misfit
+    assign, sign = encoder.pattern(7, 64)
+    signs = torch.cat([2 * message[0] - 1, torch.ones(1)]).double()
+    z, weights = pilot_z(encoder, noise + sign.double() * signs[assign], 7)
+    assert float(z) > 8
+    assert float(weights[assign != 64].abs().sum()) == 0.0 and abs(float(weights.norm()) - 1) < 1e-9
+    pilots, bits = [], []
+    for key in range(60):
+        z, w = pilot_z(encoder, noise, key)
+        pilots.append(float(payload.match_pvalue(z[None], [1], w[None])))
+        bits.append(payload.detection_pvalue(soft_bits(encoder, noise[None], key)[0], bit_weights(encoder, noise[None], key)[0]))
+    for p_values in (pilots, bits):
+        assert stats.kstest(p_values, "uniform").pvalue > 0.01
+
+
+def test_a_pilot_mark_is_detected_by_its_pilot_and_read_as_before():
+    """A model with a pilot marks and reads the bunny: detected, the message read and named; the
+    original reads no mark."""
+    from meshseal.api import Watermarker
+
+    config = ModelConfig.from_dict(load_default_config() | {"pilot_share": 0.5})
+    wm = Watermarker(WatermarkModel(config).eval())
+    bunny = load(FIXTURES / "bunny.glb")
+    original = wm.original(bunny)
+    marked = wm.embed(bunny, "ab42")
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        pictures = [MeshRenderer()(MeshBatch.from_mesh(normalize(to_z_up(m))), cameras, lights, 256, 256).image
+                    for m in (marked, bunny)]
+    found, clean = (wm.decide([wm.read(_quantise(p)[0].permute(1, 2, 0).numpy(), original, camera=cameras)])
+                    for p in pictures)
+    named = wm.decide([wm.read(_quantise(pictures[0])[0].permute(1, 2, 0).numpy(), original, camera=cameras)],
+                      expect="ab42")
+    assert found.detected and found.message == "ab42" and named.detected
+    assert not clean.detected and clean.p_value > 1e-3
+
+
+def load_default_config() -> dict:
+    from meshseal.api import load as load_model
+
+    return load_model("default").model.config.to_dict()

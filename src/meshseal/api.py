@@ -23,9 +23,10 @@ from .reading.second_look import look_again
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 DEFAULT_MODEL = "default"
 SHOWS_MESH_BELOW = 0.8  # `why_not`: an object overlapping the original's silhouette less than this may be another mesh
-# `why_not`: the default's marks made before it moved to 64^2 cells (f70e3d2) are the `fine` model's marks;
-# a picture the default reads nothing in is read again by that model under the same camera.
-PREVIOUS_DEFAULT = "fine"
+# `why_not`: the default's marks made before it took a pilot are the `dense` model's, and those made before it
+# moved to 64^2 cells (f70e3d2) the `fine` model's; a picture the default reads nothing in is read again by
+# each under the same camera, in this order. What each note says of the model.
+PREVIOUS_DEFAULTS = {"dense": "the default before it took a pilot", "fine": "the default before it moved to 64^2 cells"}
 
 
 def shipped_models() -> list[dict]:
@@ -83,7 +84,7 @@ class Watermarker:
         self.method = method_for(self.model)
         self.reader = Reader(self.method)
         self._own_of: tuple | None = None  # (prepared original, key seed, own_mark_pvalue) for `why_not`
-        self._previous: Watermarker | None = None  # PREVIOUS_DEFAULT, loaded when `why_not` first needs it
+        self._previous: dict = {}  # PREVIOUS_DEFAULTS' Watermarkers, each loaded when `why_not` first needs it
 
     @property
     def n_bits(self) -> int:
@@ -185,28 +186,31 @@ class Watermarker:
         return results[0] if single else results
 
     def previous_default_note(self, image, original, reading: Reading, key=None, expect=None) -> str | None:
-        """For the `default` model, where a picture reads no mark: the picture read again by
-        PREVIOUS_DEFAULT (the default's marks before it moved to 64^2 cells) under the camera the
-        reading used, and a note saying so where that model detects its mark, its p-value doubled
-        for the second model tried (Bonferroni), so that the note holds at the same false-positive
-        rate. None otherwise (another model, no camera, nothing read)."""
+        """For the `default` model, where a picture reads no mark: the picture read again by each of
+        PREVIOUS_DEFAULTS (the default's marks before) under the camera the reading used, and a note
+        naming the first that detects its mark, its p-value times the number of models that may be
+        tried (Bonferroni), so that the note holds at the same false-positive rate. None otherwise
+        (another model, no camera, nothing read)."""
         from . import payload
 
         if self.name != "default" or original is None or reading.found is None:
             return None
-        if self._previous is None:
-            self._previous = load(PREVIOUS_DEFAULT, str(self.device))
-        previous = self._previous
-        try:
-            again = previous.reader.read(image, original, camera=reading.found)
-        except MeshsealError:
-            return None
-        found = previous.method.decide([again], key, expect)
-        if found.p_value is None or not found.detected or not payload.detected(2 * found.p_value):
-            return None
-        said = f", message {found.message!r}" if found.message is not None else ""
-        return (f"the picture carries a mark of the model `{PREVIOUS_DEFAULT}` (p = {2 * found.p_value:.2g}{said}), "
-                f"the default before it moved to 64^2 cells: read it with --model {PREVIOUS_DEFAULT}")
+        tried = 1 + len(PREVIOUS_DEFAULTS)
+        for name, what in PREVIOUS_DEFAULTS.items():
+            if name not in self._previous:
+                self._previous[name] = load(name, str(self.device))
+            previous = self._previous[name]
+            try:
+                again = previous.reader.read(image, original, camera=reading.found)
+            except MeshsealError:
+                continue
+            found = previous.method.decide([again], key, expect)
+            if found.p_value is None or not found.detected or not payload.detected(tried * found.p_value):
+                continue
+            said = f", message {found.message!r}" if found.message is not None else ""
+            return (f"the picture carries a mark of the model `{name}` (p = {tried * found.p_value:.2g}{said}), "
+                    f"{what}: read it with --model {name}")
+        return None
 
     def original(self, mesh):
         """The original mesh (a Mesh, a path, or an already prepared one) ready for informed detection;

@@ -332,6 +332,11 @@ def _describe(result, expect=None) -> str:
     if result.detected is None:
         return f"bits {result.bits}{how}"
     p_value = f"p = {result.p_value:.2g}"
+    if result.detected and result.named is False:  # the pilot found a mark the match does not name
+        what = f"any of the {len(expect)} IDs listed" if isinstance(expect, tuple) else json.dumps(expect)
+        reads = ("the message is too faint to read" if result.message is None
+                 else f"the code reads {json.dumps(result.message)}")
+        return f"detected: a mark under this key ({p_value}, whatever its message{how}), but the match does not name {what}: {reads}"
     if isinstance(expect, tuple):  # the owner's list
         listed = f"{len(expect)} ID{'s' if len(expect) != 1 else ''} listed"
         if result.detected:
@@ -403,7 +408,8 @@ def run_detect(args) -> int:
             and not any(r.detected or r.reason or r.message is not None for r in decisions)):
         print("meshseal: note: read under the public key (no --key, no $MESHSEAL_KEY): a mark made under a "
               "secret key reads as no mark", file=sys.stderr)
-    return detect_status(failed, [r.detected for r in decisions])
+    # With --expect the question is the message: a mark the match does not name (a pilot's) exits 1.
+    return detect_status(failed, [r.detected if r.detected is None else r.detected and r.named is not False for r in decisions])
 
 
 def detect_status(failed: int, decisions: list) -> int:

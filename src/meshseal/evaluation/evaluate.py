@@ -78,6 +78,12 @@ def _names(decision, identity: int) -> bool:
     return bool(decision.detected) and decision.message == identity
 
 
+def _named(decision) -> bool:
+    """Whether a decision against the expected message detected the mark and the match named it (a
+    model's pilot may detect a mark the match does not name)."""
+    return bool(decision.detected) and decision.named is not False
+
+
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
                         size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
                         max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None,
@@ -198,7 +204,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             if coded:
                 row |= {"detected": found is not None and bool(found.detected),
                         "exact": found is not None and found.message == identity,
-                        "named": reading is not None and bool(watermarker.decide([reading], expect=identity).detected),
+                        "named": reading is not None and _named(watermarker.decide([reading], expect=identity)),
                         "listed": reading is not None and _names(watermarker.decide([reading], expect=listed), identity),
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity}
@@ -222,7 +228,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     "kinds": kinds[view], "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
                     "exact": coded and decision is not None and decision.message == identity,
-                    "named": coded and got is not None and bool(watermarker.decide([got], expect=identity).detected),
+                    "named": coded and got is not None and _named(watermarker.decide([got], expect=identity)),
                     "listed": coded and got is not None and _names(watermarker.decide([got], expect=listed), identity),
                     "seconds": time.perf_counter() - started})
             if log is not None and register:

@@ -45,7 +45,9 @@ class Detection:
     `reason`: why no mark was read, where a plausible mistake explains it (`Watermarker.why_not`).
     `list_only`: tested against a list of messages and detected, whether the message is the list's
     best match alone (True: the code could not read it, so a message outside the list is not ruled
-    out) or the code read it too (False); None otherwise.
+    out) or the code read it too (False); None otherwise. `named`: tested against an expected message
+    (or a list), whether the match named it; a model with a pilot may detect a mark (its pilot's
+    p-value) that the match does not name: detected, named False. None without an expected message.
     """
 
     bits: str
@@ -61,6 +63,7 @@ class Detection:
     silhouette_iou: float | None = None
     reason: str | None = None
     list_only: bool | None = None
+    named: bool | None = None
 
     def to_dict(self) -> dict:
         result = {"detected": self.detected, "p_value": None if self.p_value is None else float(f"{self.p_value:.4g}"),
@@ -80,6 +83,8 @@ class Detection:
             result["reason"] = self.reason
         if self.list_only is not None:
             result["list_only"] = self.list_only
+        if self.named is not None:
+            result["named"] = self.named
         return result
 
 
@@ -155,6 +160,12 @@ class Method:
         """The p-value that the original's own textures carry a mark under `key` (None: not measurable)."""
         return None
 
+    def pilot_pvalue(self, evidence: torch.Tensor, key) -> float | None:
+        """Pooled evidence (1, E) -> the exact p-value of the matched filter over the pilot's cells (the
+        key's own signs: a presence test whatever the message), the grids tried paid for. None where
+        the method's mark has no pilot."""
+        return None
+
     def decide(self, readings: list, key=None, expect=None) -> Detection:
         """The decision on the evidence of readings (`reading.read.Reading`; several: pooled, their
         evidence added). Each reading's `tries` (cameras a second look could try) multiplies the
@@ -177,10 +188,15 @@ class Method:
             return Detection(bits, soft.tolist(), None, None, None, None, **extra)
         calibrated = weights is not None
         any_mark_p = min(1.0, tries * float(payload.detection_pvalue(soft, weights))) if calibrated else None
+        looks = math.prod(r.tries for r in readings)  # the cameras a second look tried
+        pilot = self.pilot_pvalue(evidence, key) if calibrated else None
+        if pilot is not None:  # the pilot's test beside the bits', Bonferroni over the two
+            any_mark_p = min(1.0, 2.0 * min(any_mark_p, looks * pilot))
         marked = any_mark_p is not None and payload.detected(any_mark_p)
         decoded = payload.decode(soft, key) if marked or expect is not None else None  # no message to report else
         if expect is not None:
             named, family = expect, 1
+            # The message's own cells alone, not the pilot's: they would find any message of a mark there.
             if among:  # the message of the list that the soft bits agree with best, paid for by the list's length
                 best = int(((2.0 * expected.double() - 1.0) @ soft.double()).argmax())
                 named, family, expected = expect[best], len(expect), expected[best]
@@ -196,7 +212,14 @@ class Method:
                 message = getattr(named, "value", named)
                 flipped = int(((soft > 0).double() != expected.double()).sum())
                 return Detection(bits, soft.tolist(), p_value, True, message, flipped, **extra,
-                                 list_only=decoded.message is None)
+                                 list_only=decoded.message is None, named=True)
+            if not detected and pilot is not None and marked:
+                # The pilot finds a mark whatever its message, where the message's own cells do not
+                # confirm the one expected: detected at the FPR, the message not named.
+                return Detection(bits, soft.tolist(), any_mark_p, True, decoded.message,
+                                 decoded.errors_corrected if decoded.message is not None else None, **extra,
+                                 named=False)
+            extra["named"] = bool(detected)
         elif calibrated:
             p_value, detected = any_mark_p, marked
         else:  # uncalibrated logits: no decision without an expected message

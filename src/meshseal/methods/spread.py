@@ -204,8 +204,11 @@ class SpreadMethod(Method):
                  ([f"{fine}^2 where they would be over {config['fine_above']} px (a magnified texture, resampled up when "
                    "it has fewer texels)"] if fine else [])
         coarse_text = f" ({'; '.join(others)}; detection reads both grids there)" if others else ""
+        share = config.get("pilot_share", 0.0)
+        pilot_text = (f"{share:.0%} of them a pilot carrying the key's own signs (a presence test whatever the message, "
+                      "beside the bits' test, Bonferroni over the two), the others " if share else "")
         text = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
-                        f"{coarse_text}, each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
+                        f"{coarse_text}, {pilot_text}each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
                         f"shaped by local texture activity (window {config['activity_window']}, floor "
                         f"{config['activity_floor']}), laid on the texels the mesh shows and scaled to texture PSNR {config['texture_psnr']} dB over those at strength 1; "
                         "read by a matched filter (the residual whitened in the picture) after un-rendering the picture onto the "
@@ -327,6 +330,22 @@ class SpreadMethod(Method):
         best = max(range(len(parts)), key=scores.__getitem__)
         return softs[best], bit_weights(self.encoder, parts[best], key_seed)[0].double(), len(parts)
 
+    def pilot_pvalue(self, evidence, key):
+        """The pilot's test (`models.spread.pilot_z`) on each grid `evidence` holds: the smallest exact
+        p-value times the grids. None without a pilot."""
+        from .. import payload
+        from ..models.spread import pilot_z, split_grids
+
+        if not self.encoder.pilot_slots:
+            return None
+        key_seed = self.key_seed(key)
+        parts = split_grids(self.encoder, evidence)
+        p_values = []
+        for sums in parts:
+            z, weights = pilot_z(self.encoder, sums[0].double(), key_seed)
+            p_values.append(float(payload.match_pvalue(z[None], [1], weights[None])))
+        return min(1.0, len(parts) * min(p_values))
+
     def own_mark_pvalue(self, original, key=None) -> float | None:
         """The p-value that the textures of a prepared `original` carry a mark under `key`
         themselves, read from the textures alone (`models.spread.texture_cell_sums`, every grid
@@ -353,7 +372,9 @@ class SpreadMethod(Method):
         p_values = [float(payload.detection_pvalue(soft_bits(self.encoder, sums, key_seed)[0].double(),
                                                    bit_weights(self.encoder, sums, key_seed)[0].double()))
                     for sums in parts]
-        return min(1.0, len(parts) * min(p_values))
+        p_value = min(1.0, len(parts) * min(p_values))
+        pilot = self.pilot_pvalue(total.cpu(), key)
+        return p_value if pilot is None else min(1.0, 2.0 * min(p_value, pilot))
 
     # ------------------------------------------------------------ training pass
     def mark_batch(self, batch, message, vertex_mask):

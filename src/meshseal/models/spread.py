@@ -62,8 +62,13 @@ class SpreadSpectrumEncoder(nn.Module):
 
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
-                 fine_chips: int = 0, fine_above: float = 2.0, block: int = 1):
+                 fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0):
         super().__init__()
+        if not 0.0 <= pilot_share < 1.0:
+            raise ValueError("the pilot's share of the cells must be in [0, 1)")
+        # The pilot: cells carrying the key's signs alone (bit index n_bits), `pilot_share` of them, drawn
+        # as `pilot_slots` more bits would be, so that without a pilot the pattern is the one drawn before.
+        self.pilot_slots = round(n_bits * pilot_share / (1.0 - pilot_share))
         if colour not in COLOURS:
             raise ValueError(f"mark colour must be one of {', '.join(COLOURS)}")
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
@@ -102,11 +107,12 @@ class SpreadSpectrumEncoder(nn.Module):
         generator = torch.Generator().manual_seed(seed)
         cells = chips * chips
         block = self.block if self.block > 1 and chips % self.block == 0 else 1
+        slots = self.n_bits + self.pilot_slots  # a slot past the bits is the pilot's
         if block == 1:
-            assign = torch.randperm(cells, generator=generator) % self.n_bits
+            assign = (torch.randperm(cells, generator=generator) % slots).clamp_max(self.n_bits)
         else:  # a bit takes block x block neighbouring cells, so that a JPEG block holds few bits
             side = chips // block
-            blocks = (torch.randperm(side * side, generator=generator) % self.n_bits).reshape(side, side)
+            blocks = (torch.randperm(side * side, generator=generator) % slots).clamp_max(self.n_bits).reshape(side, side)
             assign = blocks.repeat_interleave(block, 0).repeat_interleave(block, 1).reshape(-1)
         return assign, torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
 
@@ -145,7 +151,10 @@ class SpreadSpectrumEncoder(nn.Module):
         """Bits (B, N) in {0, 1} -> signed cell values (B, 1, C, C) of the chips x chips grid."""
         chips = chips or self.chips
         assign, sign = self.pattern(key_seed, chips)
-        values = sign * (2.0 * message - 1.0).index_select(1, assign)
+        signs = 2.0 * message - 1.0
+        if self.pilot_slots:  # the pilot's cells keep the key's sign
+            signs = torch.cat([signs, signs.new_ones(len(signs), 1)], 1)
+        values = sign * signs.index_select(1, assign)
         return values.reshape(-1, 1, chips, chips)
 
     def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
@@ -362,9 +371,22 @@ def soft_bits(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int 
     assign, sign = encoder.pattern(key_seed, math.isqrt(sums.shape[1]))
     signed = sums * sign.to(sums)
     assign = assign.to(sums.device)
-    total = signed.new_zeros(len(sums), encoder.n_bits).index_add(1, assign, signed)
-    energy = signed.new_zeros(len(sums), encoder.n_bits).index_add(1, assign, signed * signed)
-    return total / energy.sqrt().clamp_min(1e-12)
+    slots = encoder.n_bits + (1 if encoder.pilot_slots else 0)  # the pilot's cells summed apart, then left out
+    total = signed.new_zeros(len(sums), slots).index_add(1, assign, signed)
+    energy = signed.new_zeros(len(sums), slots).index_add(1, assign, signed * signed)
+    return (total / energy.sqrt().clamp_min(1e-12))[:, :encoder.n_bits]
+
+
+def pilot_z(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The matched filter over the pilot's cells, whose signs the key alone sets: one picture's cell
+    sums (C*C,) -> z (a 0-d tensor; 0 for a model without a pilot) and the cells' weights (C*C,) for
+    `payload`'s exact null (|cell| / sqrt(sum(cell^2)) over the pilot's cells, 0 elsewhere).
+    z = sum(sign x cell) / sqrt(sum(cell^2)), about N(0, 1) without a mark under this key."""
+    assign, sign = encoder.pattern(key_seed, math.isqrt(sums.shape[-1]))
+    pilot = assign.to(sums.device) == encoder.n_bits
+    weights = sums.abs() * pilot
+    energy = weights.pow(2).sum().sqrt().clamp_min(1e-30)
+    return (sums * sign.to(sums) * pilot).sum() / energy, weights / energy
 
 
 def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
@@ -373,6 +395,9 @@ def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: in
     sum_i w_bi s_i with the key's cell signs s_i, independent fair coins without a mark."""
     assign, _ = encoder.pattern(key_seed, math.isqrt(sums.shape[1]))
     assign = assign.to(sums.device)
+    if encoder.pilot_slots:  # the bits' cells alone
+        bit_cells = torch.nonzero(assign < encoder.n_bits).squeeze(1)
+        assign, sums = assign.index_select(0, bit_cells), sums.index_select(1, bit_cells)
     order, counts = _grouping(assign, encoder.n_bits)
     grouped = sums.index_select(1, order).abs()
     if bool((counts == counts[0]).all()):  # every bit the same number of cells: a reshape
