@@ -39,6 +39,26 @@ def _picture(mesh, size=256):
     return (torch.round(image.clamp(0, 1) * 255) / 255)[0].permute(1, 2, 0).numpy(), cameras
 
 
+def _read_recording(pick: str, wm, original, shown: dict) -> tuple[list, dict]:
+    """Each picture of `shown` (name -> Mesh) read against `original`, with what `imports.<pick>` chose
+    for each, in order: (choices, name -> Detection)."""
+    picked, real_pick = [], getattr(imports, pick)
+
+    def recording(*args, **kwargs):
+        picked.append(real_pick(*args, **kwargs))
+        return picked[-1]
+
+    setattr(imports, pick, recording)
+    try:
+        results = {}
+        for name, mesh in shown.items():
+            picture, cameras = _picture(mesh)
+            results[name] = wm.decide([wm.read(picture, original, camera=cameras)])
+    finally:
+        setattr(imports, pick, real_pick)
+    return picked, results
+
+
 def test_a_picture_of_an_asset_with_halved_textures_reads_against_the_halved_original():
     """The marked bunny's texture halved (an engine's size cap) before its picture: the reading picks
     'halved' and reads the message; its clean picture picks the textures as given; a picture of the
@@ -49,21 +69,8 @@ def test_a_picture_of_an_asset_with_halved_textures_reads_against_the_halved_ori
     original = wm.original(bunny)
     marked = wm.embed(bunny, "ab42")
     halve = asset_attacks.texture_resize(0.5)
-    picked = []
-    real_pick = imports.pick
-
-    def recording(*args, **kwargs):
-        picked.append(real_pick(*args, **kwargs))
-        return picked[-1]
-
-    imports.pick = recording
-    try:
-        results = {}
-        for name, shown in (("clean", marked), ("halved", halve(marked, None)), ("unmarked", halve(bunny, None))):
-            picture, cameras = _picture(shown)
-            results[name] = wm.decide([wm.read(picture, original, camera=cameras)])
-    finally:
-        imports.pick = real_pick
+    picked, results = _read_recording("pick", wm, original, {"clean": marked, "halved": halve(marked, None),
+                                                             "unmarked": halve(bunny, None)})
     assert picked == [None, "halved", "halved"]
     assert results["clean"].detected and results["clean"].message == "ab42"
     assert results["halved"].detected and results["halved"].message == "ab42"
@@ -103,22 +110,9 @@ def test_a_picture_of_a_converted_asset_reads_against_the_recomputed_normals():
     suzanne = load(FIXTURES / "suzanne.glb")
     original = wm.original(suzanne)
     marked = wm.embed(suzanne, "ab42")
-    picked = []
-    real_pick = imports.pick_normals
-
-    def recording(*args, **kwargs):
-        picked.append(real_pick(*args, **kwargs))
-        return picked[-1]
-
-    imports.pick_normals = recording
-    try:
-        results = {}
-        for name, shown in (("clean", marked), ("converted", asset_attacks.converted(marked, None)),
-                            ("unmarked", asset_attacks.converted(suzanne, None))):
-            picture, cameras = _picture(shown)
-            results[name] = wm.decide([wm.read(picture, original, camera=cameras)])
-    finally:
-        imports.pick_normals = real_pick
+    picked, results = _read_recording("pick_normals", wm, original, {
+        "clean": marked, "converted": asset_attacks.converted(marked, None),
+        "unmarked": asset_attacks.converted(suzanne, None)})
     assert picked == [False, True, True]
     assert results["clean"].detected and results["clean"].message == "ab42"
     assert results["converted"].detected and results["converted"].message == "ab42"
