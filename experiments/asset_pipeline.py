@@ -86,7 +86,8 @@ def main() -> None:
                 result = watermarker.decide([reading])
                 tally[1] += bool(result.detected)
                 tally[2] += result.message == message
-                tally[3] += bool(watermarker.decide([reading], expect=message).detected)
+                named = watermarker.decide([reading], expect=message)  # the match named it (not a pilot's mark alone)
+                tally[3] += bool(named.detected) and named.named is not False
         for kind in ("fixture", "test mesh"):
             if (kind, "none") in counts:
                 cells = " | ".join(" / ".join(f"{counts[(kind, s)][i] / counts[(kind, s)][0]:.2f}" for i in (1, 2, 3))

@@ -111,7 +111,8 @@ def main() -> None:
                 found = wm.decide([reading])
                 named = wm.decide([reading], expect=f"{index:04d}")
                 bits = float(np.mean([int(b) for b in found.bits] == expected))
-                tally[(engine, value)].append((bool(found.detected), bool(named.detected), bits, float(found.p_value)))
+                tally[(engine, value)].append((bool(found.detected), bool(named.detected) and named.named is not False, bits,
+                                               float(found.p_value)))
                 line.append(f"{engine} {key}={value:g}: {bits:.2f}{' detected' if found.detected else ''}")
         print(f"mesh {index}: " + "; ".join(line), flush=True)
     camera = ("registered" if args.register else "camera known") + (", unmarked pictures" if args.unmarked else "")

@@ -158,7 +158,7 @@ def main() -> None:
                 row = {"mesh": name, "engine": engine, "view": view, "bit_acc": bit(result),
                        "bit_acc_known": bit(truth), "detected": bool(result.detected),
                        "exact": result.message == message, "detected_known": bool(truth.detected),
-                       "named": bool(named.detected),
+                       "named": bool(named.detected) and named.named is not False,  # the match named it
                        "pose_error_px": pose_error(original_batch, cameras[[view]], reading.found, args.size, args.size),
                        "seconds": seconds, **seen}
                 rows[engine].append(row)
