@@ -83,15 +83,18 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         # An untextured material carries no mark: weight 0 (a None texture would sample as white).
         masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
         if imports is not None and n_images == 1:  # the asset as its import made it, where that explains the picture
-            from ..reading.imports import pick, pick_normals
+            from ..reading.imports import beats_footprint, pick, pick_normals
 
             if imports.normals is not None and pick_normals(found, imports.normals, cameras, (n_images, height, width)):
                 mesh = replace(mesh, normals=imports.normals)
                 found = relit_residual(mesh, image, cameras)
             chosen = pick(found, mesh.textures, imports.textures, (n_images, height, width))
             if chosen is not None:
-                mesh = replace(mesh, textures=imports.textures[chosen])
-                found = relit_residual(mesh, image, cameras)
+                imported = replace(mesh, textures=imports.textures[chosen])
+                candidate = relit_residual(imported, image, cameras)
+                if not footprint or beats_footprint(candidate, found, picture_footprint(mesh, found, cameras, height, width),
+                                                    (n_images, height, width)):
+                    mesh, found = imported, candidate
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
         pixel = found.fragments.pixel.index_select(0, found.keep)
         sampled = None

@@ -126,6 +126,20 @@ def pick_normals(found, normals: torch.Tensor, cameras, shape: tuple[int, int, i
     return _detail(found.seen - expected, pixel, shape) < PICK_BELOW * given
 
 
+def beats_footprint(candidate, found, footprint, shape: tuple[int, int, int]) -> bool:
+    """Whether the picked import's prediction (`candidate`, `relight.RelitResidual` from its textures,
+    point samples) still explains the picture better than the textures as given under the footprint
+    the picture shows for them (`footprint`: `reading.footprint.picture_footprint` of `found`, the
+    given textures' residual): a picture halved or blurred after it was made loses the texture's detail
+    too, which a smaller texture explains as well as the pixel's area does, but the mark there is the
+    area's, not a point sample's. Taken where its detail is under PICK_BELOW of the footprint's."""
+    pixel = found.fragments.pixel.index_select(0, found.keep)
+    usable = footprint.usable
+    given = _detail((found.seen - footprint.expected)[usable], pixel[usable], shape)
+    picked = _detail(candidate.seen - candidate.expected, candidate.fragments.pixel.index_select(0, candidate.keep), shape)
+    return picked < PICK_BELOW * given
+
+
 def pick(found, textures: list, candidates: dict[str, list], shape: tuple[int, int, int]) -> str | None:
     """The import whose textures predict one picture best, or None for the textures as given.
 
