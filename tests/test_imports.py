@@ -117,3 +117,27 @@ def test_a_picture_of_a_converted_asset_reads_against_the_recomputed_normals():
     assert results["clean"].detected and results["clean"].message == "ab42"
     assert results["converted"].detected and results["converted"].message == "ab42"
     assert not results["unmarked"].detected and results["unmarked"].p_value > 1e-3
+
+
+def test_a_picked_import_must_beat_the_textures_as_given_under_the_pictures_footprint():
+    """`beats_footprint` keeps a picked import only where its point-sampled residual's detail is under
+    PICK_BELOW of the textures as given under the picture's footprint (a halved picture: the area's
+    prediction explains it; an asset with halved textures: the import does)."""
+    from types import SimpleNamespace
+
+    generator = torch.Generator().manual_seed(0)
+    side = 32
+    pixel = torch.arange(side * side)
+    fragments = SimpleNamespace(pixel=pixel)
+    keep = torch.arange(side * side)
+    seen = torch.rand(side * side, 3, generator=generator)
+    detail = torch.rand(side * side, 3, generator=generator) - 0.5  # what a prediction misses: fine detail
+
+    def residual(expected):
+        return SimpleNamespace(seen=seen, expected=expected, fragments=fragments, keep=keep)
+
+    given = residual(seen + detail)  # point samples of the textures as given miss the detail
+    shape = (1, side, side)
+    area = SimpleNamespace(expected=seen + 0.1 * detail, usable=torch.ones(side * side, dtype=torch.bool))
+    assert not imports.beats_footprint(residual(seen + 0.5 * detail), given, area, shape)  # the area explains more
+    assert imports.beats_footprint(residual(seen + 0.05 * detail), given, area, shape)  # the import explains more
