@@ -82,6 +82,7 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     with torch.no_grad():
         # An untextured material carries no mark: weight 0 (a None texture would sample as white).
         masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
+        given_footprint = None  # the textures' footprint, where an import was weighed against it and not taken
         if imports is not None and n_images == 1:  # the asset as its import made it, where that explains the picture
             from ..reading.imports import beats_footprint, pick, pick_normals
 
@@ -92,9 +93,9 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             if chosen is not None:
                 imported = replace(mesh, textures=imports.textures[chosen])
                 candidate = relit_residual(imported, image, cameras)
-                if not footprint or beats_footprint(candidate, found, picture_footprint(mesh, found, cameras, height, width),
-                                                    (n_images, height, width)):
-                    mesh, found = imported, candidate
+                given_footprint = picture_footprint(mesh, found, cameras, height, width) if footprint else None
+                if given_footprint is None or beats_footprint(candidate, found, given_footprint, (n_images, height, width)):
+                    mesh, found, given_footprint = imported, candidate, None
         gain = (found.expected / found.albedo.clamp_min(0.02)).mean(1).clamp(0.0, 3.0)  # shading at the pixel
         pixel = found.fragments.pixel.index_select(0, found.keep)
         sampled = None
@@ -102,7 +103,10 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             from ..reading.footprint import chosen_before, remember_choice
 
             known = chosen_before(image) if n_images == 1 else None
-            sampled = picture_footprint(mesh, found, cameras, height, width, known=known)
+            if known is None and given_footprint is not None:  # worked out above for the textures as given
+                sampled = given_footprint
+            else:
+                sampled = picture_footprint(mesh, found, cameras, height, width, known=known)
             if n_images == 1 and known is None:
                 remember_choice(image, sampled)
         expected = found.expected if sampled is None else sampled.expected
