@@ -24,6 +24,7 @@ message now and then; docs/payload.md gives the rate): report it only when a p-v
 from __future__ import annotations
 
 import hashlib
+import itertools
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -396,23 +397,103 @@ def _message(word: int, schema: _Schema) -> tuple[str | int | None, str | None, 
     return (None if "\0" in text else text), name, version
 
 
-def decode(soft, key: str | bytes | None = None) -> Decoded:
-    """Read the message from soft bits (N,) under `key`: the signs, hard-decoded (bit '1' where > 0).
-
-    No soft (Chase) retries over the least reliable bits: they turn more failures into messages but
-    many of those into wrong ones (docs/payload.md has the table), and a wrong message is worse than
-    none."""
+def decode(soft, key: str | bytes | None = None, soft_retry: bool = True) -> Decoded:
+    """Read the message from soft bits (N,) under `key`: the signs, hard-decoded (bit '1' where > 0);
+    where that fails, the most likely codeword given the soft values (`_soft_decode`), taken only where
+    it is far likelier than every other codeword near it. A wrong message is worse than none: the
+    retry accepts a codeword only at a posterior of 1 - SOFT_RISK or more (docs/payload.md, "Soft
+    decoding"). `soft_retry` False: the hard decoding alone, as before the retry."""
     z = _as_soft(soft)
     if z.ndim != 1:
         raise MeshsealError(f"soft bits must be one vector, got shape {tuple(z.shape)}")
     schema, n_bits = _schema(len(z)), len(z)
     bits = "".join("1" if v > 0 else "0" for v in z)
-    hard = (z[_permutation(key, n_bits)] > 0).astype(np.uint8) ^ _keystream(key, n_bits)
+    permutation, keystream = _permutation(key, n_bits), _keystream(key, n_bits)
+    hard = (z[permutation] > 0).astype(np.uint8) ^ keystream
     codeword = _bch_decode(hard)
+    if codeword is None and soft_retry:  # no codeword within t of the signs: the likeliest, where it is clearly so
+        raw = _soft_decode(z, key)
+        if raw is not None:
+            codeword = raw[permutation] ^ keystream
     if codeword is None:
         return Decoded(None, None, None, None, False, bits)
     message, kind, version = _message(int("".join(map(str, codeword[:schema.k])), 2), schema)
     return Decoded(message, kind, version, int((codeword != hard).sum()), True, bits)
+
+
+SOFT_ORDER = 2  # the soft decoding's candidates: the most reliable information set's hard bits with up to this many flipped
+SOFT_RISK = 1e-2  # ... and a codeword is taken only where its posterior among them is at least 1 - this
+
+
+@lru_cache(maxsize=8)
+def _code_layout(key_bytes: bytes, n_bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The code in raw bit positions under a key: generator rows (k, N), the whitening (N,) (a raw
+    codeword is data @ rows + whitening, mod 2) and the soft decoding's flip patterns (L, k)."""
+    rows = _generator_rows(n_bits, key_bytes).astype(np.uint8)
+    k = rows.shape[0]
+    flips = [()] + [combination for order in range(1, SOFT_ORDER + 1)
+                    for combination in itertools.combinations(range(k), order)]
+    patterns = np.zeros((len(flips), k), dtype=np.uint8)
+    for index, flipped in enumerate(flips):
+        patterns[index, list(flipped)] = 1
+    return rows, _raw_of_zero(n_bits, key_bytes).astype(np.uint8), patterns
+
+
+def _soft_decode(z: np.ndarray, key) -> np.ndarray | None:
+    """The raw bits (N,) of the codeword most likely given soft bits `z` (N,), or None where it is not
+    clearly the most likely. Ordered-statistics decoding (Fossorier and Lin, 1995): the k most reliable
+    positions that determine a codeword (Gaussian elimination over GF(2) in order of |z|), their hard
+    bits with up to SOFT_ORDER of them flipped, each re-encoded; the best-correlated codeword wins.
+    Soft bits are modelled as mu * (+-1) + N(0, 1), mu estimated from the winner's own correlation;
+    the winner's posterior among the candidates, 1 / sum_c exp(-mu (corr_best - corr_c)), must be at
+    least 1 - SOFT_RISK. The candidates include the codewords nearest the winner, so a word about as
+    likely as another is refused. Run only where hard decoding found no codeword within t."""
+    n_bits = len(z)
+    rows, whitening, patterns = _code_layout(_key_bytes(key), n_bits)
+    k = rows.shape[0]
+    signed = np.where(whitening == 1, -z, z)  # soft values of the unwhitened (linear) code's bits
+    order = np.argsort(-np.abs(signed), kind="stable")
+    matrix = rows[:, order].copy()
+    pivots, row = [], 0
+    for column in range(n_bits):
+        if row == k:
+            break
+        below = np.flatnonzero(matrix[row:, column])
+        if len(below) == 0:
+            continue  # dependent on the more reliable columns already taken
+        if below[0]:
+            matrix[[row, row + below[0]]] = matrix[[row + below[0], row]]
+        others = np.flatnonzero(matrix[:, column])
+        others = others[others != row]
+        matrix[others] ^= matrix[row]
+        pivots.append(column)
+        row += 1
+    if row < k:
+        return None
+    ordered = signed[order]
+    information = (ordered[pivots] > 0).astype(np.uint8)
+    # Distinct information bits give distinct codewords: no candidate repeats another.
+    candidates = ((information[None] ^ patterns).astype(np.int64) @ matrix.astype(np.int64)) % 2  # (L, N)
+    correlation = ((2.0 * candidates - 1.0) * ordered).sum(1)
+    best = int(correlation.argmax())
+    mu = correlation[best] / n_bits
+    if not mu > 0:
+        return None
+    posterior = 1.0 / np.exp(-mu * (correlation[best] - correlation)).sum()
+    if posterior < 1.0 - SOFT_RISK:
+        return None
+    # The soft values must explain the winner's disagreements with the hard bits: under the model each
+    # hard bit is wrong with probability 1 / (1 + exp(2 mu |z|)), so the disagreements should number
+    # about the sum of those. Far more (a Poisson tail under SOFT_RISK) means the magnitudes do not say
+    # which bits are wrong (e.g. all equal), and then a list that misses the true codeword can name
+    # another with a posterior that only looks high.
+    disagree = int(((candidates[best] == 1) != (ordered > 0)).sum())
+    expected = float((1.0 / (1.0 + np.exp(np.minimum(2.0 * mu * np.abs(ordered), 700.0)))).sum())
+    if disagree > 0 and special.pdtrc(disagree - 1, expected) < SOFT_RISK:
+        return None
+    raw = np.empty(n_bits, dtype=np.uint8)
+    raw[order] = candidates[best].astype(np.uint8)
+    return raw ^ whitening
 
 
 # --- p-values under the null model: no mark under this key ---------------------------------------------

@@ -587,9 +587,9 @@ def kind_table(kinds: dict, attacks: list[str]) -> str:
 def attack_table(table: dict) -> str:
     """`evaluate_registered`'s per-attack figures as a Markdown table."""
     figure = lambda value: "-" if value is None else f"{value:.3f}"  # noqa: E731
-    lines = ["| attack | pictures | detected | exact | detected, message named | detected and named, 1,000 IDs listed "
-             "| bit accuracy | seconds |", "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {name} | {row['pictures']} | {figure(row['detected'])} | {figure(row['exact'])} | "
+    lines = ["| attack | pictures | detected | exact | wrong message | detected, message named | detected and named, "
+             "1,000 IDs listed | bit accuracy | seconds |", "|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {name} | {row['pictures']} | {figure(row['detected'])} | {figure(row['exact'])} | {figure(row.get('wrong'))} | "
               f"{figure(row.get('named'))} | {figure(row.get('listed'))} | {figure(row['bit_acc'])} | {row['seconds']:.2f} |"
               for name, row in table.items()]
     return "\n".join(lines)

@@ -204,10 +204,12 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             if coded:
                 row |= {"detected": found is not None and bool(found.detected),
                         "exact": found is not None and found.message == identity,
+                        "wrong": found is not None and found.message not in (None, identity),
                         "named": reading is not None and _named(watermarker.decide([reading], expect=identity)),
                         "listed": reading is not None and _names(watermarker.decide([reading], expect=listed), identity),
                         "detected_known": truth is not None and bool(truth.detected),
-                        "exact_known": truth is not None and truth.message == identity}
+                        "exact_known": truth is not None and truth.message == identity,
+                        "wrong_known": truth is not None and truth.message not in (None, identity)}
             rows.append(row | {"kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
                                "strength": used_strength})
@@ -228,6 +230,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     "kinds": kinds[view], "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
                     "exact": coded and decision is not None and decision.message == identity,
+                    "wrong": coded and decision is not None and decision.message not in (None, identity),
                     "named": coded and got is not None and _named(watermarker.decide([got], expect=identity)),
                     "listed": coded and got is not None and _names(watermarker.decide([got], expect=listed), identity),
                     "seconds": time.perf_counter() - started})
@@ -263,7 +266,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         result |= {"tpr": mean("detected"), "exact_message": mean("exact"), "tpr_message_named": mean("named"),
                    "tpr_among_listed": mean("listed"),
                    "tpr_known_camera": mean("detected_known"),
-                   "exact_message_known_camera": mean("exact_known"), "fpr_threshold": payload.FPR}
+                   "exact_message_known_camera": mean("exact_known"), "fpr_threshold": payload.FPR,
+                   # a message reported that is not the one marked: the error that matters most to an owner
+                   "wrong_message": mean("wrong"), "wrong_message_known_camera": mean("wrong_known")}
     if pooled:
         result |= {"tpr_pooled": mean("detected", pooled), "exact_message_pooled": mean("exact", pooled)}
     if coded:  # meshes with a UV map, and those that use the texture as a palette (`api.PALETTE_WARNING`)
@@ -287,12 +292,14 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     if attacked:
         result["attacks"] = {name: {"pictures": len(part), "detected": mean("detected", part) if coded else None,
                                     "exact": mean("exact", part) if coded else None,
+                                    "wrong": mean("wrong", part) if coded else None,
                                     "named": mean("named", part) if coded else None,
                                     "listed": mean("listed", part) if coded else None, "bit_acc": mean("bit_acc", part),
                                     "seconds": mean("seconds", part)} for name, part in attacked.items()}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
-            "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "fpr_threshold", "by_uv_map",
+            "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "wrong_message_known_camera",
+            "fpr_threshold", "by_uv_map",
             "tpr_message_named", "tpr_among_listed", "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
             "strength_lowered", "by_kind",
             "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
