@@ -411,6 +411,13 @@ def decode(soft, key: str | bytes | None = None, soft_retry: bool = True) -> Dec
     permutation, keystream = _permutation(key, n_bits), _keystream(key, n_bits)
     hard = (z[permutation] > 0).astype(np.uint8) ^ keystream
     codeword = _bch_decode(hard)
+    if codeword is not None and soft_retry and int((codeword != hard).sum()) >= VERIFY_FROM:
+        # Several bits corrected: a codeword within t of the signs need not be the likely one (hard
+        # decoding miscorrects there); kept only where the soft values make it clearly the likeliest.
+        raw = np.empty(n_bits, dtype=np.uint8)
+        raw[permutation] = codeword ^ keystream
+        if _posterior(z, key, raw) < 1.0 - VERIFY_RISK:
+            return Decoded(None, None, None, None, False, bits)
     if codeword is None and soft_retry:  # no codeword within t of the signs: the likeliest, where it is clearly so
         raw = _soft_decode(z, key)
         if raw is not None:
@@ -421,6 +428,8 @@ def decode(soft, key: str | bytes | None = None, soft_retry: bool = True) -> Dec
     return Decoded(message, kind, version, int((codeword != hard).sum()), True, bits)
 
 
+VERIFY_FROM = 3  # a hard decoding that corrected this many bits or more is checked against the soft values ...
+VERIFY_RISK = 0.1  # ... and kept only where its posterior among the soft decoding's candidates is at least 1 - this
 SOFT_ORDER = 2  # the soft decoding's candidates: the most reliable information set's hard bits with up to this many flipped
 SOFT_RISK = 1e-2  # ... and a codeword is taken only where its posterior among them is at least 1 - this
 
@@ -448,6 +457,53 @@ def _soft_decode(z: np.ndarray, key) -> np.ndarray | None:
     the winner's posterior among the candidates, 1 / sum_c exp(-mu (corr_best - corr_c)), must be at
     least 1 - SOFT_RISK. The candidates include the codewords nearest the winner, so a word about as
     likely as another is refused. Run only where hard decoding found no codeword within t."""
+    ordered, order, candidates, correlation = _candidates(z, key)
+    if candidates is None:
+        return None
+    best = int(correlation.argmax())
+    mu = correlation[best] / len(z)
+    if not mu > 0:
+        return None
+    posterior = 1.0 / np.exp(-mu * (correlation[best] - correlation)).sum()
+    if posterior < 1.0 - SOFT_RISK:
+        return None
+    # The soft values must explain the winner's disagreements with the hard bits: under the model each
+    # hard bit is wrong with probability 1 / (1 + exp(2 mu |z|)), so the disagreements should number
+    # about the sum of those. Far more (a Poisson tail under SOFT_RISK) means the magnitudes do not say
+    # which bits are wrong (e.g. all equal), and then a list that misses the true codeword can name
+    # another with a posterior that only looks high.
+    disagree = int(((candidates[best] == 1) != (ordered > 0)).sum())
+    expected = float((1.0 / (1.0 + np.exp(np.minimum(2.0 * mu * np.abs(ordered), 700.0)))).sum())
+    if disagree > 0 and special.pdtrc(disagree - 1, expected) < SOFT_RISK:
+        return None
+    _, whitening, _ = _code_layout(_key_bytes(key), len(z))
+    raw = np.empty(len(z), dtype=np.uint8)
+    raw[order] = candidates[best].astype(np.uint8)
+    return raw ^ whitening
+
+
+def _posterior(z: np.ndarray, key, raw: np.ndarray) -> float:
+    """The posterior of the codeword with raw bits `raw` (N,) among itself and the soft decoding's
+    candidates (the model of `_soft_decode`, mu from the best-correlated of them); 0 where the soft
+    values do not favour any."""
+    ordered, order, candidates, correlation = _candidates(z, key)
+    if candidates is None:
+        return 0.0
+    _, whitening, _ = _code_layout(_key_bytes(key), len(z))
+    own = (raw ^ whitening)[order].astype(np.int64)
+    own_correlation = float(((2.0 * own - 1.0) * ordered).sum())
+    others = correlation[~(candidates == own).all(1)]
+    mu = max(own_correlation, float(others.max(initial=-np.inf))) / len(z)
+    if not mu > 0:
+        return 0.0
+    return float(1.0 / (1.0 + np.exp(-mu * (own_correlation - others)).sum()))
+
+
+def _candidates(z: np.ndarray, key):
+    """The ordered-statistics decoder's candidate codewords for soft bits `z` (N,): the soft values of
+    the unwhitened code's bits in order of reliability (N,), that order (N,), the candidates in that
+    order (L, N) and their correlations with the soft values (L,); None candidates where the bits do
+    not determine a codeword (never, for a code's own generator rows)."""
     n_bits = len(z)
     rows, whitening, patterns = _code_layout(_key_bytes(key), n_bits)
     k = rows.shape[0]
@@ -468,32 +524,13 @@ def _soft_decode(z: np.ndarray, key) -> np.ndarray | None:
         matrix[others] ^= matrix[row]
         pivots.append(column)
         row += 1
-    if row < k:
-        return None
     ordered = signed[order]
+    if row < k:
+        return ordered, order, None, None
     information = (ordered[pivots] > 0).astype(np.uint8)
     # Distinct information bits give distinct codewords: no candidate repeats another.
     candidates = ((information[None] ^ patterns).astype(np.int64) @ matrix.astype(np.int64)) % 2  # (L, N)
-    correlation = ((2.0 * candidates - 1.0) * ordered).sum(1)
-    best = int(correlation.argmax())
-    mu = correlation[best] / n_bits
-    if not mu > 0:
-        return None
-    posterior = 1.0 / np.exp(-mu * (correlation[best] - correlation)).sum()
-    if posterior < 1.0 - SOFT_RISK:
-        return None
-    # The soft values must explain the winner's disagreements with the hard bits: under the model each
-    # hard bit is wrong with probability 1 / (1 + exp(2 mu |z|)), so the disagreements should number
-    # about the sum of those. Far more (a Poisson tail under SOFT_RISK) means the magnitudes do not say
-    # which bits are wrong (e.g. all equal), and then a list that misses the true codeword can name
-    # another with a posterior that only looks high.
-    disagree = int(((candidates[best] == 1) != (ordered > 0)).sum())
-    expected = float((1.0 / (1.0 + np.exp(np.minimum(2.0 * mu * np.abs(ordered), 700.0)))).sum())
-    if disagree > 0 and special.pdtrc(disagree - 1, expected) < SOFT_RISK:
-        return None
-    raw = np.empty(n_bits, dtype=np.uint8)
-    raw[order] = candidates[best].astype(np.uint8)
-    return raw ^ whitening
+    return ordered, order, candidates, ((2.0 * candidates - 1.0) * ordered).sum(1)
 
 
 # --- p-values under the null model: no mark under this key ---------------------------------------------
