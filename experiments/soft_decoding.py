@@ -27,7 +27,7 @@ def outcome(message, truth) -> str:
 def simulate(draws: int) -> None:
     from meshseal import payload
 
-    print("| N | mu | hard decoding: right / wrong / failed | with the soft retry |")
+    print("| N | mu | hard decoding alone: right / wrong / failed | with the check and the soft retry |")
     print("|---|---|---|---|")
     for n_bits, mus in ((64, (1.0, 1.25, 1.5, 2.0)), (32, (1.0, 1.5, 2.0))):
         for mu in mus:
@@ -88,7 +88,7 @@ def pictures(data: Path, meshes: int, attacks: list[str], model: str) -> None:
                 counts[name][retry][outcome(payload.decode(decision.soft, None, soft_retry=retry).message, identity)] += 1
         print(f"mesh {index + 1}/{meshes}", file=sys.stderr, flush=True)
     print(f"\n{model}, first {meshes} test meshes, one view each, camera known; of the pictures detected:\n")
-    print("| attack | pictures detected | hard decoding: right / wrong / failed | with the soft retry |")
+    print("| attack | pictures detected | hard decoding alone: right / wrong / failed | with the check and the soft retry |")
     print("|---|---|---|---|")
     for name in attacks:
         cells = [" / ".join(str(counts[name][r][k]) for k in ("right", "wrong", "failed")) for r in (False, True)]
