@@ -193,7 +193,9 @@ class Method:
         if pilot is not None:  # the pilot's test beside the bits', Bonferroni over the two
             any_mark_p = min(1.0, 2.0 * min(any_mark_p, looks * pilot))
         marked = any_mark_p is not None and payload.detected(any_mark_p)
-        decoded = payload.decode(soft, key) if marked or expect is not None else None  # no message to report else
+        # No message to report else. The soft decoding models z-scores (unit noise): logits of a learned
+        # decoder have no such scale, so theirs is the hard decoding alone.
+        decoded = payload.decode(soft, key, soft_retry=calibrated) if marked or expect is not None else None
         if expect is not None:
             named, family = expect, 1
             # The message's own cells alone, not the pilot's: they would find any message of a mark there.
