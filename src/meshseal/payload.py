@@ -401,8 +401,10 @@ def decode(soft, key: str | bytes | None = None, soft_retry: bool = True) -> Dec
     """Read the message from soft bits (N,) under `key`: the signs, hard-decoded (bit '1' where > 0);
     where that fails, the most likely codeword given the soft values (`_soft_decode`), taken only where
     it is far likelier than every other codeword near it. A wrong message is worse than none: the
-    retry accepts a codeword only at a posterior of 1 - SOFT_RISK or more (docs/payload.md, "Soft
-    decoding"). `soft_retry` False: the hard decoding alone, as before the retry."""
+    retry accepts a codeword only at a posterior of 1 - SOFT_RISK or more, and a hard decoding that
+    corrected VERIFY_FROM bits or more is kept only at a posterior of 1 - VERIFY_RISK or more (hard
+    decoding's miscorrections; docs/payload.md, "Soft decoding"). `soft_retry` False: the hard
+    decoding alone, unchecked (for soft values that are not z-scores)."""
     z = _as_soft(soft)
     if z.ndim != 1:
         raise MeshsealError(f"soft bits must be one vector, got shape {tuple(z.shape)}")
