@@ -459,7 +459,7 @@ def _soft_decode(z: np.ndarray, key) -> np.ndarray | None:
     the winner's posterior among the candidates, 1 / sum_c exp(-mu (corr_best - corr_c)), must be at
     least 1 - SOFT_RISK. The candidates include the codewords nearest the winner, so a word about as
     likely as another is refused. Run only where hard decoding found no codeword within t."""
-    ordered, order, candidates, correlation = _candidates(z, key)
+    ordered, order, candidates, correlation, whitening = _candidates(z, key)
     if candidates is None:
         return None
     best = int(correlation.argmax())
@@ -478,7 +478,6 @@ def _soft_decode(z: np.ndarray, key) -> np.ndarray | None:
     expected = float((1.0 / (1.0 + np.exp(np.minimum(2.0 * mu * np.abs(ordered), 700.0)))).sum())
     if disagree > 0 and special.pdtrc(disagree - 1, expected) < SOFT_RISK:
         return None
-    _, whitening, _ = _code_layout(_key_bytes(key), len(z))
     raw = np.empty(len(z), dtype=np.uint8)
     raw[order] = candidates[best].astype(np.uint8)
     return raw ^ whitening
@@ -488,10 +487,9 @@ def _posterior(z: np.ndarray, key, raw: np.ndarray) -> float:
     """The posterior of the codeword with raw bits `raw` (N,) among itself and the soft decoding's
     candidates (the model of `_soft_decode`, mu from the best-correlated of them); 0 where the soft
     values do not favour any."""
-    ordered, order, candidates, correlation = _candidates(z, key)
+    ordered, order, candidates, correlation, whitening = _candidates(z, key)
     if candidates is None:
         return 0.0
-    _, whitening, _ = _code_layout(_key_bytes(key), len(z))
     own = (raw ^ whitening)[order].astype(np.int64)
     own_correlation = float(((2.0 * own - 1.0) * ordered).sum())
     others = correlation[~(candidates == own).all(1)]
@@ -504,8 +502,8 @@ def _posterior(z: np.ndarray, key, raw: np.ndarray) -> float:
 def _candidates(z: np.ndarray, key):
     """The ordered-statistics decoder's candidate codewords for soft bits `z` (N,): the soft values of
     the unwhitened code's bits in order of reliability (N,), that order (N,), the candidates in that
-    order (L, N) and their correlations with the soft values (L,); None candidates where the bits do
-    not determine a codeword (never, for a code's own generator rows)."""
+    order (L, N), their correlations with the soft values (L,) and the key's whitening (N,); None
+    candidates where the bits do not determine a codeword (never, for a code's own generator rows)."""
     n_bits = len(z)
     rows, whitening, patterns = _code_layout(_key_bytes(key), n_bits)
     k = rows.shape[0]
@@ -528,11 +526,11 @@ def _candidates(z: np.ndarray, key):
         row += 1
     ordered = signed[order]
     if row < k:
-        return ordered, order, None, None
+        return ordered, order, None, None, whitening
     information = (ordered[pivots] > 0).astype(np.uint8)
     # Distinct information bits give distinct codewords: no candidate repeats another.
     candidates = ((information[None] ^ patterns).astype(np.int64) @ matrix.astype(np.int64)) % 2  # (L, N)
-    return ordered, order, candidates, ((2.0 * candidates - 1.0) * ordered).sum(1)
+    return ordered, order, candidates, ((2.0 * candidates - 1.0) * ordered).sum(1), whitening
 
 
 # --- p-values under the null model: no mark under this key ---------------------------------------------
