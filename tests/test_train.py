@@ -393,6 +393,24 @@ def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
     assert "add --register" in capsys.readouterr().err
 
 
+def test_an_attacks_pictures_do_not_depend_on_the_others_in_the_list(dataset, monkeypatch):
+    """An attack's random draws (the noise) come from its name, not its place in `--attacks`: the
+    pictures after `noise2` are the same alone and after another attack."""
+    from meshseal.evaluation import evaluate as E
+    from meshseal.data.dataset import MeshDataset
+
+    seen = []
+    attack = E.attack_picture
+    monkeypatch.setattr(E, "attack_picture", lambda name, picture, rng: seen.append((name, out := attack(name, picture, rng)))
+                        or out)
+    model, test = meshseal.load().model, MeshDataset(dataset, "test")
+    for attacks in (["noise2"], ["jpeg75", "noise2"]):
+        E.evaluate_registered(model, test, n_meshes=1, size=64, register=False, attacks=attacks)
+    noisy = [picture for name, picture in seen if name == "noise2"]
+    assert len(noisy) == 2 and np.array_equal(noisy[0], noisy[1])
+    assert not np.array_equal(noisy[0], E.attack_picture("noise2", noisy[0], np.random.default_rng(0)))
+
+
 def test_registered_eval_marks_each_mesh_under_embeds_flip_budget(dataset):
     """Each mesh is marked as `meshseal embed` marks it, within the FLIP budget: a budget out of reach
     lowers every mesh's strength to the floor, which the texture PSNR shows; none marks at strength 1."""

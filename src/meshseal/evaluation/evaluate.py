@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+import zlib
 
 import numpy as np
 import torch
@@ -38,6 +39,12 @@ from .metrics import (
 SMALL_OBJECT = 1500
 CLIPPED = 0.2
 KIND_ORDER = ("plain", "magnified", "minified", "clipped", "small")
+
+
+def attack_stream(name: str) -> int:
+    """The random stream of attack `name` (its canvas placement, its noise): from its name, so that an
+    attack's pictures are the same whichever other attacks run beside it and in whatever order."""
+    return zlib.crc32(name.encode("utf-8"))
 
 
 def picture_kinds(encoder, grid: int | None, pictures: torch.Tensor, masks: torch.Tensor) -> list[list[str]]:
@@ -176,8 +183,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             asset_pictures = {}  # each asset attack's 8-bit pictures, rendered from the attacked marked asset
             marked = Mesh(positions[0], normals_marked[0], faces[0], uvs_marked[0],
                           materials=[Material(texture=texture_marked[0].permute(1, 2, 0))])
-            for number, name in enumerate(n for n in attacked if n in ASSET_ATTACKS):
-                rng = np.random.default_rng([seed, index, 1_000 + number])
+            for name in (n for n in attacked if n in ASSET_ATTACKS):
+                rng = np.random.default_rng([seed, index, 1_000, attack_stream(name)])
                 hit = MeshBatch.from_mesh(attack_asset(name, marked, rng))
                 seen_hit = renderer(hit, cameras, lights, size, size, background).image.clamp(0, 1)
                 asset_pictures[name] = torch.round(seen_hit * 255) / 255
@@ -213,8 +220,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             rows.append(row | {"kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
                                "strength": used_strength})
-            for number, name in enumerate(attacked):
-                rng = np.random.default_rng([seed, index, view, number])
+            for name in attacked:
+                rng = np.random.default_rng([seed, index, view, attack_stream(name)])
                 if name in ASSET_ATTACKS:  # the picture of the asset after the attack, in the same view and light
                     hit = asset_pictures[name][view].permute(1, 2, 0).cpu().numpy()
                 else:
