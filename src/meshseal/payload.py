@@ -416,9 +416,7 @@ def decode(soft, key: str | bytes | None = None, soft_retry: bool = True) -> Dec
     if codeword is not None and soft_retry and int((codeword != hard).sum()) >= VERIFY_FROM:
         # Several bits corrected: a codeword within t of the signs need not be the likely one (hard
         # decoding miscorrects there); kept only where the soft values make it clearly the likeliest.
-        raw = np.empty(n_bits, dtype=np.uint8)
-        raw[permutation] = codeword ^ keystream
-        if _posterior(z, key, raw) < 1.0 - VERIFY_RISK:
+        if _posterior(z, key, _placed(codeword, key, n_bits, True)) < 1.0 - VERIFY_RISK:
             return Decoded(None, None, None, None, False, bits)
     if codeword is None and soft_retry:  # no codeword within t of the signs: the likeliest, where it is clearly so
         raw = _soft_decode(z, key)
