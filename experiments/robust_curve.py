@@ -32,6 +32,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--meshes", type=int, default=30)
+    parser.add_argument("--start", type=int, default=0, help="the first test mesh (default 0)")
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--psnr", type=float, nargs="+", default=[40.0, 37.0, 34.0, 31.0])
     parser.add_argument("--colours", nargs="+", default=["grey", "blue-yellow"])
@@ -43,6 +44,8 @@ def main() -> None:
     parser.add_argument("--scan", type=int, default=284, help="test meshes to look through for --kind")
     parser.add_argument("--dequantize", type=float, default=None,
                         help="the reading's JPEG dequantisation prior (reading.compression.DEQUANTIZE_SIGMA; 0: off)")
+    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "robust.yaml",
+                        help="the model config the marks start from (default configs/robust.yaml)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a model setting (YAML value), repeatable")
     args = parser.parse_args()
@@ -51,7 +54,7 @@ def main() -> None:
 
         compression.DEQUANTIZE_SIGMA = args.dequantize
         print(f"<!-- JPEG dequantisation prior sigma {args.dequantize:g} -->")
-    base = yaml.safe_load((ROOT / "configs" / "robust.yaml").read_text())["model"]
+    base = yaml.safe_load(args.config.read_text())["model"]
     for item in args.set:
         key, value = item.split("=", 1)
         base[key] = yaml.safe_load(value)
@@ -59,6 +62,8 @@ def main() -> None:
         print(f"<!-- settings: {' '.join(args.set)} -->")
     attacks = parse(args.attacks)
     dataset = MeshDataset(args.data, "test", seed=0)
+    if args.start:
+        dataset = _Subset(dataset, list(range(args.start, len(dataset))))
     if args.kind:
         dataset = _of_kind(dataset, args.kind, args.scan)
         print(f"<!-- {len(dataset)} {args.kind} meshes of the first {args.scan} -->")

@@ -920,3 +920,36 @@ def test_the_default_reads_a_mark_of_dense_on_its_message_cells():
     by_default, by_dense = (wm.decide([wm.read(picture, wm.original(bunny), camera=cameras)]) for wm in (default, dense))
     assert by_default.detected and by_default.message == "ab42"
     assert by_dense.detected and by_dense.message == "ab42" and by_dense.p_value < by_default.p_value
+
+
+def test_a_mark_colour_is_named_or_given_and_the_reading_may_take_another():
+    """A colour is one of COLOURS or "r,g,b", made unit; the luminance direction carries the most
+    luminance for a texture PSNR (a third more energy than grey); a grey mark read along luminance
+    (`read_colour`) still reads."""
+    from meshseal.methods.spread import _luma_along
+    from meshseal.models.spread import colour_direction
+    from meshseal.reading.compression import LUMA
+
+    assert torch.allclose(colour_direction("grey"), torch.full((3,), 3 ** -0.5))
+    assert torch.allclose(colour_direction("1,2,2"), torch.tensor([1.0, 2.0, 2.0]) / 3)
+    for bad in ("purple", "0,0,0", "1,2"):
+        with pytest.raises(ValueError, match="mark colour"):
+            colour_direction(bad)
+    luma = torch.tensor(LUMA)
+    grey_y, luma_y = float(colour_direction("grey") @ luma), float(colour_direction("luma") @ luma)
+    assert abs((luma_y / grey_y) ** 2 - 1.341) < 0.01
+    assert abs(_luma_along(colour_direction("grey")) - grey_y) < 1e-6
+    assert _luma_along(colour_direction("blue-yellow")) == float("inf")  # its luminance says nothing: read as 0
+
+    config = replace(SPREAD, mark_colour="grey", read_colour="luma", read_highpass=3.0, read_window=3.0,
+                     read_brightness=-1.0)  # the default's reading: no brightness fit
+    model, message, original, marked = _original_and_marked_batches(config)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        seen = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+    z = read_bits(model, original, seen, cameras)
+    assert ((z > 0).float() == message).float().mean() >= 0.95
+    across = WatermarkModel(replace(config, read_colour="1,-1,0"))  # orthogonal to grey: nothing of the mark
+    across.load_state_dict(model.state_dict())
+    z_across = read_bits(across, original, seen, cameras)
+    assert float((z_across * (2 * message - 1)).mean()) < 0.3 * float((z * (2 * message - 1)).mean())

@@ -29,6 +29,26 @@ PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has
 AFFINE_BELOW = 0.7
 
 
+def _luma_along(colour: torch.Tensor) -> float:
+    """What one unit of a mark along `colour` (unit, (1, 3, 1)-shaped or (3,)) is in luminance, so that
+    the mark read in luminance through JPEG's quantiser (`dequantized`) is put back along its colour;
+    inf for a chroma colour (under half a grey mark's luminance): its luminance says next to nothing of
+    it, and it reads 0 there."""
+    from ..reading.compression import LUMA
+
+    along = float((colour.reshape(-1).cpu() * torch.tensor(LUMA, dtype=colour.dtype)).sum())
+    return along if along > 0.5 / 3 ** 0.5 else float("inf")
+
+
+def _read_along(model: WatermarkModel) -> torch.Tensor:
+    """The unit colour (3,) the residual is read along: the config's `read_colour`, else the mark's."""
+    if model.config.read_colour:
+        from ..models.spread import colour_direction
+
+        return colour_direction(model.config.read_colour)
+    return model.texture_encoder.colour
+
+
 def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: torch.Tensor, pixel: torch.Tensor,
                           shape: tuple[int, int, int], sigma: float, highpass: float) -> torch.Tensor:
     """The prediction (P, 3) to read the picture against: in each picture where the local affine fit of
@@ -119,14 +139,14 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             expected, chosen = codecs.recompressed(image, expected, pixel)
             if fit < 0.0 and codecs.reads_quantiser(image, chosen):  # no brightness fit: a JPEG read through its quantiser
                 if model.config.read_affine > 0.0:  # the unrounded prediction as another engine showed it
-                    before = _affine_where_it_fits(found.seen, before, encoder.colour.to(image), pixel,
+                    before = _affine_where_it_fits(found.seen, before, _read_along(model).to(image), pixel,
                                                    (n_images, height, width), model.config.read_affine,
                                                    model.config.read_highpass)
                 dequantized = codecs.dequantized(image, before, pixel, chosen)
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
         textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
         usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
-        colour = encoder.colour.to(image)
+        colour = _read_along(model).to(image)
         config = model.config
         if fit == 0.0:
             # Each pixel's own brightness against the prediction (a shadow, one of two coincident sheets
@@ -154,8 +174,8 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
                 expected = _affine_where_it_fits(found.seen, expected, colour, pixel, (n_images, height, width),
                                                  config.read_affine, config.read_highpass)
             along = ((found.seen - expected) * colour).sum(1)
-            if dequantized is not None:  # a grey mark m in luminance is m in every channel
-                along = torch.where(dequantized.isnan(), along, dequantized * colour.sum())
+            if dequantized is not None:  # a mark a x colour shows as a x (luma . colour) in luminance
+                along = torch.where(dequantized.isnan(), along, dequantized / _luma_along(colour))
         whitened = torch.zeros_like(along)
         if bool(usable.any()):
             options = {"highpass": config.read_highpass, "window": config.read_window} | (whitening or {})

@@ -42,7 +42,23 @@ from torch import nn
 USED_RESOLUTION = 1024  # `texels_used` works at most this many texels a side
 READ_BOTH_BELOW = 1.1  # detection reads both grids up to this many times the embedding's threshold
 PIXEL_AT_OBJECT = 2 * 3.5 * math.tan(math.radians(30)) / 256  # a 256^2 picture's pixel at a radius-1 object 3.5 away, 60-degree view
-COLOURS = {"blue-yellow": (1.0, 1.0, -2.0), "grey": (1.0, 1.0, 1.0), "red-green": (1.0, -1.0, 0.0)}
+COLOURS = {"blue-yellow": (1.0, 1.0, -2.0), "grey": (1.0, 1.0, 1.0), "red-green": (1.0, -1.0, 0.0),
+           "luma": (0.299, 0.587, 0.114)}
+
+
+def colour_direction(name: str) -> torch.Tensor:
+    """The unit colour direction (3,) a mark colour names: one of COLOURS, or "r,g,b" (any three numbers,
+    not all 0)."""
+    if name in COLOURS:
+        values = COLOURS[name]
+    else:
+        try:
+            values = tuple(float(v) for v in name.split(","))
+        except ValueError:
+            values = ()
+        if len(values) != 3 or not any(values):
+            raise ValueError(f"mark colour must be one of {', '.join(COLOURS)} or three numbers r,g,b")
+    return F.normalize(torch.tensor(values, dtype=torch.float32), dim=0)
 
 
 def activity_mask(texture: torch.Tensor, window: int = 5, floor: float = 0.3) -> torch.Tensor:
@@ -69,15 +85,13 @@ class SpreadSpectrumEncoder(nn.Module):
         # The pilot: cells carrying the key's signs alone (bit index n_bits), `pilot_share` of them, drawn
         # as `pilot_slots` more bits would be, so that without a pilot the pattern is the one drawn before.
         self.pilot_slots = round(n_bits * pilot_share / (1.0 - pilot_share))
-        if colour not in COLOURS:
-            raise ValueError(f"mark colour must be one of {', '.join(COLOURS)}")
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
         self.fine_chips, self.fine_above, self.block = fine_chips, fine_above, block
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
-        self.register_buffer("colour", F.normalize(torch.tensor(COLOURS[colour]), dim=0))
+        self.register_buffer("colour", colour_direction(colour))
         self._keyed: dict[tuple[int | None, int], tuple[torch.Tensor, torch.Tensor]] = {}
         self._amplitudes: list[tuple[torch.Tensor, int, torch.Tensor]] = []
 
