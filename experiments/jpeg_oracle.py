@@ -21,6 +21,7 @@ import torch
 import meshseal
 import meshseal.evaluation.evaluate as evaluate_module
 import meshseal.methods.spread as spread_module
+import meshseal.reading.footprint as footprint_module
 from meshseal.data.dataset import MeshDataset
 from meshseal.evaluation.attacks import parse
 from meshseal.render import MeshRenderer
@@ -69,6 +70,7 @@ def main() -> None:
         if reading == "oracle":
             spread_module.relit_residual = _oracle_relit
             spread_module.picture_footprint = lambda *a, **k: None  # the oracle's prediction is already as sampled
+            footprint_module.remember_choice = lambda *a, **k: None  # ... so there is no footprint to keep
         rows[reading] = evaluate_module.evaluate_registered(model, dataset, args.meshes, 0, args.size, "seed", None,
                                                             views=1, register=False, max_flip=None, attacks=attacks)
         print(f"<!-- {reading}: {time.time() - started:.0f} s -->", flush=True)
