@@ -953,3 +953,26 @@ def test_a_mark_colour_is_named_or_given_and_the_reading_may_take_another():
     across.load_state_dict(model.state_dict())
     z_across = read_bits(across, original, seen, cameras)
     assert float((z_across * (2 * message - 1)).mean()) < 0.3 * float((z * (2 * message - 1)).mean())
+
+
+def test_a_wide_pilot_lies_on_blocks_of_one_sign_and_leaves_the_draws_without_it_alone():
+    """`pilot_block` 2: the pilot takes half the cells in 2 x 2 blocks, each block one sign, under every
+    key; the bits keep equal shares of the others; without it (1) the pattern is the one drawn before."""
+    from meshseal.models.spread import SpreadSpectrumEncoder
+
+    piloted = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, pilot_share=0.5)
+    same = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, pilot_share=0.5, pilot_block=1)
+    assert torch.equal(same.assign, piloted.assign) and torch.equal(same.sign, piloted.sign)
+    wide = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, pilot_share=0.5, pilot_block=2)
+    for key_seed in (None, 12345):
+        assign, sign = wide.pattern(key_seed, 64)
+        counts = torch.bincount(assign, minlength=65)
+        assert int(counts[64]) == 64 * 64 // 2 and (counts[:64] == 32).all()
+        blocks = (assign == 64).reshape(32, 2, 32, 2).permute(0, 2, 1, 3).reshape(32, 32, 4)
+        assert torch.equal(blocks.all(2), blocks.any(2))  # a block is all pilot or none of it
+        signs = sign.reshape(32, 2, 32, 2).permute(0, 2, 1, 3).reshape(32, 32, 4)[blocks.all(2)]
+        assert (signs == signs[:, :1]).all() and 0.4 < float((signs[:, 0] > 0).float().mean()) < 0.6
+    assert not torch.equal(wide.pattern(None, 64)[0], wide.pattern(12345, 64)[0])
+    config = ModelConfig.from_dict({"n_bits": 64, "texture_encoder": "spread", "chips": 64, "pilot_share": 0.5,
+                                    "pilot_block": 2})
+    assert WatermarkModel(config).texture_encoder.pilot_block == 2

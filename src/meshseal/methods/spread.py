@@ -232,7 +232,9 @@ class SpreadMethod(Method):
                    "it has fewer texels)"] if fine else [])
         coarse_text = f" ({'; '.join(others)}; detection reads both grids there)" if others else ""
         share = config.get("pilot_share", 0.0)
-        pilot_text = (f"{share:.0%} of them a pilot carrying the key's own signs (a presence test whatever the message, "
+        wide = config.get("pilot_block", 1)
+        blocks = f" on {wide} x {wide} blocks of cells of one sign" if wide > 1 else ""
+        pilot_text = (f"{share:.0%} of them a pilot{blocks} carrying the key's own signs (a presence test whatever the message, "
                       "beside the bits' test, Bonferroni over the two), the others " if share else "")
         text = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
                         f"{coarse_text}, {pilot_text}each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "

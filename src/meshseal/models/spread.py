@@ -78,7 +78,8 @@ class SpreadSpectrumEncoder(nn.Module):
 
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
-                 fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0):
+                 fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0,
+                 pilot_block: int = 1):
         super().__init__()
         if not 0.0 <= pilot_share < 1.0:
             raise ValueError("the pilot's share of the cells must be in [0, 1)")
@@ -87,7 +88,7 @@ class SpreadSpectrumEncoder(nn.Module):
         self.pilot_slots = round(n_bits * pilot_share / (1.0 - pilot_share))
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
-        self.fine_chips, self.fine_above, self.block = fine_chips, fine_above, block
+        self.fine_chips, self.fine_above, self.block, self.pilot_block = fine_chips, fine_above, block, pilot_block
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
@@ -122,6 +123,19 @@ class SpreadSpectrumEncoder(nn.Module):
         cells = chips * chips
         block = self.block if self.block > 1 and chips % self.block == 0 else 1
         slots = self.n_bits + self.pilot_slots  # a slot past the bits is the pilot's
+        wide = self.pilot_block if self.pilot_block > 1 and self.pilot_slots and chips % self.pilot_block == 0 else 1
+        if wide > 1:  # the pilot on blocks of wide x wide cells of one sign, the message on single cells
+            side = chips // wide
+            coarse = (torch.randperm(side * side, generator=generator) % slots) >= self.n_bits
+            pilot = coarse.reshape(side, side).repeat_interleave(wide, 0).repeat_interleave(wide, 1).reshape(-1)
+            free = torch.nonzero(~pilot).squeeze(1)  # the message's cells, dealt to the bits in equal shares
+            free = free[torch.randperm(len(free), generator=generator)]
+            assign = torch.full((cells,), self.n_bits, dtype=torch.long)
+            assign[free] = torch.arange(len(free)) % self.n_bits
+            coarse_sign = (torch.randint(0, 2, (side * side,), generator=generator).float() * 2 - 1).reshape(side, side)
+            fine_sign = torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
+            wide_sign = coarse_sign.repeat_interleave(wide, 0).repeat_interleave(wide, 1).reshape(-1)
+            return assign, torch.where(pilot, wide_sign, fine_sign)
         if block == 1:
             assign = (torch.randperm(cells, generator=generator) % slots).clamp_max(self.n_bits)
         else:  # a bit takes block x block neighbouring cells, so that a JPEG block holds few bits
