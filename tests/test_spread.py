@@ -974,5 +974,10 @@ def test_a_wide_pilot_lies_on_blocks_of_one_sign_and_leaves_the_draws_without_it
         assert (signs == signs[:, :1]).all() and 0.4 < float((signs[:, 0] > 0).float().mean()) < 0.6
     assert not torch.equal(wide.pattern(None, 64)[0], wide.pattern(12345, 64)[0])
     config = ModelConfig.from_dict({"n_bits": 64, "texture_encoder": "spread", "chips": 64, "pilot_share": 0.5,
-                                    "pilot_block": 2})
-    assert WatermarkModel(config).texture_encoder.pilot_block == 2
+                                    "pilot_block": 2, "pilot_gain": 0.6})
+    encoder = WatermarkModel(config).texture_encoder
+    assert encoder.pilot_block == 2 and encoder.pilot_gain == 0.6
+    message = torch.randint(0, 2, (1, 64), generator=torch.Generator().manual_seed(1)).float()
+    cells, pilot = encoder.cells(message).reshape(-1), encoder.assign == 64
+    assert torch.equal(cells[pilot], 0.6 * encoder.sign[pilot])  # the pilot's share of the energy, scaled
+    assert torch.equal(cells[~pilot], (encoder.sign * (2 * message[0] - 1)[encoder.assign.clamp_max(63)])[~pilot])

@@ -79,7 +79,7 @@ class SpreadSpectrumEncoder(nn.Module):
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
                  fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0,
-                 pilot_block: int = 1):
+                 pilot_block: int = 1, pilot_gain: float = 1.0):
         super().__init__()
         if not 0.0 <= pilot_share < 1.0:
             raise ValueError("the pilot's share of the cells must be in [0, 1)")
@@ -89,6 +89,7 @@ class SpreadSpectrumEncoder(nn.Module):
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
         self.fine_chips, self.fine_above, self.block, self.pilot_block = fine_chips, fine_above, block, pilot_block
+        self.pilot_gain = pilot_gain
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
@@ -183,6 +184,8 @@ class SpreadSpectrumEncoder(nn.Module):
         if self.pilot_slots:  # the pilot's cells keep the key's sign
             signs = torch.cat([signs, signs.new_ones(len(signs), 1)], 1)
         values = sign * signs.index_select(1, assign)
+        if self.pilot_slots and self.pilot_gain != 1.0:  # the pilot's share of the energy, against the message's
+            values = torch.where(assign == self.n_bits, values * self.pilot_gain, values)
         return values.reshape(-1, 1, chips, chips)
 
     def forward(self, texture: torch.Tensor, message: torch.Tensor, strength: float = 1.0,
