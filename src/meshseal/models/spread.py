@@ -61,6 +61,12 @@ def colour_direction(name: str) -> torch.Tensor:
     return F.normalize(torch.tensor(values, dtype=torch.float32), dim=0)
 
 
+def _widened(values: torch.Tensor, side: int, factor: int) -> torch.Tensor:
+    """A side x side grid's values (side^2,) on the grid `factor` times finer, each value on its factor x
+    factor block of cells, flattened ((side * factor)^2,)."""
+    return values.reshape(side, side).repeat_interleave(factor, 0).repeat_interleave(factor, 1).reshape(-1)
+
+
 def activity_mask(texture: torch.Tensor, window: int = 5, floor: float = 0.3) -> torch.Tensor:
     """Just-noticeable-difference weights (B, 1, H, W) of textures (B, 3, H, W): local luminance
     standard deviation over `window` texels, relative to its image mean, plus `floor`."""
@@ -128,21 +134,19 @@ class SpreadSpectrumEncoder(nn.Module):
         if wide > 1:  # the pilot on blocks of wide x wide cells of one sign, the message on single cells
             side = chips // wide
             coarse = (torch.randperm(side * side, generator=generator) % slots) >= self.n_bits
-            pilot = coarse.reshape(side, side).repeat_interleave(wide, 0).repeat_interleave(wide, 1).reshape(-1)
+            pilot = _widened(coarse, side, wide)
             free = torch.nonzero(~pilot).squeeze(1)  # the message's cells, dealt to the bits in equal shares
             free = free[torch.randperm(len(free), generator=generator)]
             assign = torch.full((cells,), self.n_bits, dtype=torch.long)
             assign[free] = torch.arange(len(free)) % self.n_bits
-            coarse_sign = (torch.randint(0, 2, (side * side,), generator=generator).float() * 2 - 1).reshape(side, side)
+            coarse_sign = torch.randint(0, 2, (side * side,), generator=generator).float() * 2 - 1
             fine_sign = torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
-            wide_sign = coarse_sign.repeat_interleave(wide, 0).repeat_interleave(wide, 1).reshape(-1)
-            return assign, torch.where(pilot, wide_sign, fine_sign)
+            return assign, torch.where(pilot, _widened(coarse_sign, side, wide), fine_sign)
         if block == 1:
             assign = (torch.randperm(cells, generator=generator) % slots).clamp_max(self.n_bits)
         else:  # a bit takes block x block neighbouring cells, so that a JPEG block holds few bits
             side = chips // block
-            blocks = (torch.randperm(side * side, generator=generator) % slots).clamp_max(self.n_bits).reshape(side, side)
-            assign = blocks.repeat_interleave(block, 0).repeat_interleave(block, 1).reshape(-1)
+            assign = _widened((torch.randperm(side * side, generator=generator) % slots).clamp_max(self.n_bits), side, block)
         return assign, torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
 
     def pattern(self, key_seed: int | None = None, chips: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .spread import COLOURS, USED_RESOLUTION, activity_mask
+from .spread import USED_RESOLUTION, activity_mask, colour_direction
 
 REFERENCE_EYE = (0.0, -2.5, 3.0)  # the middle of the seed's camera range (canonical frame, z up)
 SEED_VIEWS = 3  # texels are traced through SEED_VIEWS^2 cameras of the seed's range
@@ -138,7 +138,7 @@ class SurfaceCodeEncoder(nn.Module):
         rows = _hadamard(cells)[1 + rng.permutation(cells - 1)[:n_bits]] * rng.choice([-1.0, 1.0], cells)
         self.n_bits, self.cells, self.texture_psnr, self.window, self.floor = n_bits, cells, texture_psnr, window, floor
         self.register_buffer("codes", torch.tensor(rows, dtype=torch.float32))  # (N, cells)
-        self.register_buffer("colour", F.normalize(torch.tensor(COLOURS[colour], dtype=torch.float32), dim=0))
+        self.register_buffer("colour", colour_direction(colour))
 
     def forward(self, texture: torch.Tensor, message: torch.Tensor, columns: torch.Tensor, painted: torch.Tensor,
                 strength: float = 1.0) -> torch.Tensor:
