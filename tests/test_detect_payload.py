@@ -123,25 +123,27 @@ def test_detect_says_why_where_a_plausible_mistake_explains_no_mark(pictures, ca
     assert code == 0 and result["detected"] and "reason" not in result
 
 
-def test_a_mark_of_the_previous_default_is_named_where_the_default_reads_none(pictures, tmp_path, capsys):
-    """A mark made by `fine` (the default before 64^2 cells): the default says so and which model reads it; the
-    clean picture gets no such note."""
-    assert main(["embed", BUNNY, "-o", str(tmp_path / "f.glb"), "--model", "fine", "--message", "ab42", "--views", "0"]) == 0
+@pytest.mark.parametrize("previous", ["even", "fine"])
+def test_a_mark_of_a_previous_default_is_named_where_the_default_reads_none(pictures, tmp_path, capsys, previous):
+    """A mark made by `even` (the default before its pilot lay on 2 x 2 blocks) or `fine` (before 64^2
+    cells): the default reads no mark, says so and which model reads it; the clean picture gets no such
+    note."""
+    assert main(["embed", BUNNY, "-o", str(tmp_path / "f.glb"), "--model", previous, "--message", "ab42", "--views", "0"]) == 0
     assert main(["render", str(tmp_path / "f.glb"), "-o", str(tmp_path / "f.png"), "--seed", "3",
                  "--width", "192", "--height", "192"]) == 0
     code, (result, clean), _ = _detect(capsys, tmp_path / "f.png", pictures / "clean.png")
     assert code == 1 and not result["detected"] and result["p_value"] > 1e-3
-    assert "--model fine" in result["reason"] and "'ab42'" in result["reason"], result
+    assert f"--model {previous}" in result["reason"] and "'ab42'" in result["reason"], result
     assert not clean["detected"] and "reason" not in clean, clean
 
 
 def test_own_mark_is_read_from_the_texture_alone_under_its_key_only(pictures):
     import meshseal
-    from meshseal.payload import FPR
+    from meshseal.api import OWN_MARK_HINT_BELOW
 
     wm = meshseal.load()
     marked, clean = wm.original(pictures / "m.glb"), wm.original(BUNNY)
-    assert wm.method.own_mark_pvalue(marked, "s3cret") < FPR
+    assert wm.method.own_mark_pvalue(marked, "s3cret") < OWN_MARK_HINT_BELOW
     for original, key in ((marked, "other"), (marked, None), (clean, "s3cret"), (clean, None)):
         assert wm.method.own_mark_pvalue(original, key) > 1e-3, key
 
@@ -170,7 +172,7 @@ def test_a_mark_in_an_obj_jpeg_texture_survives_the_file(tmp_path, capsys):
 
 
 def _cells(method, bits, mu, key, rng):
-    """A reading whose cell sums carry `bits` at `mu` per cell in unit Gaussian noise."""
+    """A reading whose cell sums carry `bits` at `mu` per message cell (the pilot's at its gain) in unit Gaussian noise."""
     import types
 
     import torch
@@ -178,7 +180,8 @@ def _cells(method, bits, mu, key, rng):
     encoder = method.encoder
     assign, sign = encoder.pattern(method.key_seed(key), encoder.chips)
     signs = torch.cat([2 * bits - 1, torch.ones(1)])  # index n_bits: the pilot's cells, where the model has one
-    cell = sign * signs[assign] * mu + torch.from_numpy(rng.standard_normal(assign.numel())).float()
+    gain = torch.where(assign == method.n_bits, encoder.pilot_gain, 1.0)  # the pilot's amplitude, as `cells` lays it
+    cell = sign * signs[assign] * gain * mu + torch.from_numpy(rng.standard_normal(assign.numel())).float()
     return types.SimpleNamespace(evidence=cell, tries=1, box=None, camera="metadata", registration_iou=None)
 
 
@@ -206,13 +209,17 @@ def test_a_list_of_ids_names_the_one_carried_pays_for_its_length_and_is_never_to
     # No mark: the list's p-values are conservative (no more small ones than their level allows).
     p = np.array([method.decide([_cells(method, carried, 0.0, "k", rng)], "k", ids).p_value for _ in range(300)])
     assert (p <= 0.05).mean() <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 300) and p.min() > 1e-4
-    # The default's pilot (half the cells, the key's own signs) finds as faint a mark whatever its message,
-    # where the bits' test alone misses it; the list still names it, on the message's own cells.
+    # The default's pilot (half the cells, the key's own signs) finds faint marks whatever their message,
+    # most of them too faint for the code to read; the list still names them, on the message's own cells.
     default = load("default").method
-    faint = _cells(default, carried, 0.13, "k", rng)
-    alone, listed = default.decide([faint], "k"), default.decide([faint], "k", ids)
-    assert alone.detected and alone.message is None and listed.detected and listed.message == 5123
-    assert default.pilot_pvalue(faint.evidence[None], "k") < 1e-7
+    found, unread, named = 0, 0, 0
+    for _ in range(20):
+        faint = _cells(default, carried, 0.18, "k", rng)
+        alone, listed = default.decide([faint], "k"), default.decide([faint], "k", ids)
+        found += bool(alone.detected and default.pilot_pvalue(faint.evidence[None], "k") < 1e-6)
+        unread += alone.message is None
+        named += bool(listed.detected and listed.message == 5123)
+    assert found >= 19 and unread >= 14 and named >= 18, (found, unread, named)
 
 
 def test_detect_reads_a_list_of_ids_from_a_file(pictures, capsys, tmp_path):

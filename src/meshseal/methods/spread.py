@@ -208,7 +208,8 @@ class SpreadMethod(Method):
 
     name = "spread"
     params_named = ("n_bits", "chips", "coarse_chips", "coarse_below", "fine_chips", "fine_above", "mark_colour",
-                    "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "read_highpass",
+                    "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "pilot_share",
+                    "pilot_block", "pilot_gain", "read_highpass",
                     "read_window", "read_brightness", "read_affine", "read_imports")
     informed = True
     calibrated = True
@@ -234,6 +235,8 @@ class SpreadMethod(Method):
         share = config.get("pilot_share", 0.0)
         wide = config.get("pilot_block", 1)
         blocks = f" on {wide} x {wide} blocks of cells of one sign" if wide > 1 else ""
+        gain = config.get("pilot_gain", 1.0)
+        blocks += f" at {gain:g} of the message's amplitude" if gain != 1.0 else ""
         pilot_text = (f"{share:.0%} of them a pilot{blocks} carrying the key's own signs (a presence test whatever the message, "
                       "beside the bits' test, Bonferroni over the two), the others " if share else "")
         text = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"

@@ -130,7 +130,7 @@ class SpreadSpectrumEncoder(nn.Module):
         cells = chips * chips
         block = self.block if self.block > 1 and chips % self.block == 0 else 1
         slots = self.n_bits + self.pilot_slots  # a slot past the bits is the pilot's
-        wide = self.pilot_block if self.pilot_block > 1 and self.pilot_slots and chips % self.pilot_block == 0 else 1
+        wide = self.pilot_width(chips)
         if wide > 1:  # the pilot on blocks of wide x wide cells of one sign, the message on single cells
             side = chips // wide
             coarse = (torch.randperm(side * side, generator=generator) % slots) >= self.n_bits
@@ -148,6 +148,10 @@ class SpreadSpectrumEncoder(nn.Module):
             side = chips // block
             assign = _widened((torch.randperm(side * side, generator=generator) % slots).clamp_max(self.n_bits), side, block)
         return assign, torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
+
+    def pilot_width(self, chips: int) -> int:
+        """Cells per side of the pilot's blocks of one sign on a chips x chips grid (1: single cells)."""
+        return self.pilot_block if self.pilot_block > 1 and self.pilot_slots and chips % self.pilot_block == 0 else 1
 
     def pattern(self, key_seed: int | None = None, chips: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The cell-to-bit assignment (C*C,) and cell signs (C*C,) of a chips x chips grid (the model's
@@ -413,15 +417,25 @@ def soft_bits(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int 
 
 
 def pilot_z(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """The matched filter over the pilot's cells, whose signs the key alone sets: one picture's cell
-    sums (C*C,) -> z (a 0-d tensor; 0 for a model without a pilot) and the cells' weights (C*C,) for
-    `payload`'s exact null (|cell| / sqrt(sum(cell^2)) over the pilot's cells, 0 elsewhere).
-    z = sum(sign x cell) / sqrt(sum(cell^2)), about N(0, 1) without a mark under this key."""
-    assign, sign = encoder.pattern(key_seed, math.isqrt(sums.shape[-1]))
+    """The matched filter over the pilot, whose signs the key alone sets: one picture's cell sums
+    (C*C,) -> z (a 0-d tensor; 0 for a model without a pilot) and the weights of its units for
+    `payload`'s exact null (|unit| / sqrt(sum(unit^2)) over the pilot's units, 0 elsewhere). A unit is
+    what one of the key's signs covers: a pilot cell, or on a pilot of blocks (`pilot_block`) the sum
+    of a block's cells, so that the null draws one fair coin per sign the key drew (cells of one block
+    share theirs: counted apart, the host's residual, alike in neighbouring cells, would read as a mark).
+    z = sum(sign x unit) / sqrt(sum(unit^2)), about N(0, 1) without a mark under this key."""
+    chips = math.isqrt(sums.shape[-1])
+    assign, sign = encoder.pattern(key_seed, chips)
     pilot = assign.to(sums.device) == encoder.n_bits
-    weights = sums.abs() * pilot
+    units, sign = sums * pilot, sign.to(sums)
+    wide = encoder.pilot_width(chips)
+    if wide > 1:  # each block's cells summed; a block is all pilot or none, its sign on every cell
+        side = chips // wide
+        units = units.reshape(side, wide, side, wide).sum((1, 3)).reshape(-1)
+        sign = sign.reshape(side, wide, side, wide)[:, 0, :, 0].reshape(-1)
+    weights = units.abs()
     energy = weights.pow(2).sum().sqrt().clamp_min(1e-30)
-    return (sums * sign.to(sums) * pilot).sum() / energy, weights / energy
+    return (units * sign).sum() / energy, weights / energy
 
 
 def bit_weights(encoder: SpreadSpectrumEncoder, sums: torch.Tensor, key_seed: int | None = None) -> torch.Tensor:
