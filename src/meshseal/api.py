@@ -23,16 +23,10 @@ from .reading.second_look import look_again
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 DEFAULT_MODEL = "default"
 SHOWS_MESH_BELOW = 0.8  # `why_not`: an object overlapping the original's silhouette less than this may be another mesh
-# `why_not`: the mesh given as the original is said to be marked itself where its textures alone read a mark under
-# the key at this p-value: a hint shown only where a picture reads no mark, looser than the FPR (a mark lowered by
-# the FLIP budget reads near 1e-6 from a texture, whose own content stays in the sums as noise)
-OWN_MARK_HINT_BELOW = 1e-4
-# `why_not`: the default's marks made before its pilot lay on 2 x 2 blocks are the `even` model's, those made
-# before it took a pilot the `dense` model's (which `even` reads too, on its message's cells: hence first), and
-# those made before it moved to 64^2 cells (f70e3d2) the `fine` model's; a picture the default reads nothing
-# in is read again by each under the same camera, in this order. What each note says of the model.
-PREVIOUS_DEFAULTS = {"even": "the default before its pilot was widened", "dense": "the default before it took a pilot",
-                     "fine": "the default before it moved to 64^2 cells"}
+# `why_not`: the default's marks made before it took a pilot are the `dense` model's, and those made before it
+# moved to 64^2 cells (f70e3d2) the `fine` model's; a picture the default reads nothing in is read again by
+# each under the same camera, in this order. What each note says of the model.
+PREVIOUS_DEFAULTS = {"dense": "the default before it took a pilot", "fine": "the default before it moved to 64^2 cells"}
 
 
 def shipped_models() -> list[dict]:
@@ -243,12 +237,14 @@ class Watermarker:
 
     def why_not(self, result: Detection, original, key=None, reading: Reading | None = None) -> str | None:
         """Why a picture read no mark, where a plausible mistake explains it, else None: the mesh
-        given as the original is itself marked under `key` (`Method.own_mark_pvalue` under OWN_MARK_HINT_BELOW: a
+        given as the original is itself marked under `key` (`Method.own_mark_pvalue` under the FPR: a
         picture of it then reads nothing against it), or the picture's object does not match the
         original's silhouette under the picture's camera (IoU under SHOWS_MESH_BELOW: another mesh,
         or a registration gone astray). A mark made under another key is not told apart from no mark
         (docs/payload.md). A picture whose camera came from its metadata gets its silhouette IoU
         here (`result.silhouette_iou`), from its `reading`, only when it read no mark."""
+        from . import payload
+
         if result.detected is not False or result.message is not None or original is None:
             return None  # (a message read, but not the one --expect names: no mistake to explain)
         if result.silhouette_iou is None and reading is not None and reading.object_mask is not None:
@@ -260,8 +256,8 @@ class Watermarker:
         if self._own_of is None or self._own_of[0] is not original or self._own_of[1] != key_seed:
             self._own_of = (original, key_seed, self.method.own_mark_pvalue(original, key))
         own = self._own_of[2]
-        if own is not None and own <= OWN_MARK_HINT_BELOW:
-            return (f"the mesh given as the original seems itself marked under this key (p = {own:.2g}): "
+        if own is not None and payload.detected(own):
+            return (f"the mesh given as the original is itself marked under this key (p = {own:.2g}): "
                     f"give the unmarked original with --mesh")
         if result.silhouette_iou is not None and result.silhouette_iou < SHOWS_MESH_BELOW:
             return f"the picture does not seem to show this mesh (silhouette IoU {result.silhouette_iou:.2f})"
