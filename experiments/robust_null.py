@@ -6,6 +6,7 @@ larger: reports per attack the pictures, how many reach the FPR 1e-6 threshold, 
 the share under 0.01 and 0.1, and a Kolmogorov-Smirnov p-value against uniform.
 
     python experiments/robust_null.py --data data --meshes 200 [--start 0] [--views 1] [--model robust] [--json OUT] [--register]
+    python experiments/robust_null.py --merge A.json B.json ...   # one table over runs' --json files (e.g. halves of the split)
 """
 
 from __future__ import annotations
@@ -33,9 +34,33 @@ from meshseal.render.views import sample_views
 from meshseal.training.views import random_backgrounds
 
 
+def table(p_values: dict[str, list[float]]) -> None:
+    """The Markdown table of p-values per attack, and a last row over every picture."""
+    print("| attack | pictures | at FPR 1e-6 | smallest p | p < 0.01 | p < 0.1 | KS p (uniform) |")
+    print("|---|---|---|---|---|---|---|")
+    rows = [*p_values.items(), ("all", [v for values in p_values.values() for v in values])]
+    for name, values in rows:
+        values = np.array(values)
+        print(f"| {name} | {len(values)} | {int((values <= payload.FPR).sum())} | {values.min():.2g} | "
+              f"{(values < 0.01).mean():.3f} | {(values < 0.1).mean():.3f} | {stats.kstest(values, 'uniform').pvalue:.2g} |")
+
+
+def merge(paths: list[Path]) -> None:
+    """One table over several runs' `--json` files (their p-values per attack put together)."""
+    p_values: dict[str, list[float]] = {}
+    runs = [json.loads(path.read_text()) for path in paths]
+    for run in runs:
+        for name, values in run["p_values"].items():
+            p_values.setdefault(name, []).extend(values)
+    models = sorted({run["model"] for run in runs})
+    print(f"{', '.join(models)}: {len(runs)} runs put together ({', '.join(str(p) for p in paths)})\n")
+    table(p_values)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--merge", type=Path, nargs="+", help="print one table over these runs' --json files, and stop")
+    parser.add_argument("--data", type=Path)
     parser.add_argument("--meshes", type=int, default=200)
     parser.add_argument("--start", type=int, default=0, help="the first test mesh (runs can share the split)")
     parser.add_argument("--views", type=int, default=1)
@@ -45,6 +70,11 @@ def main() -> None:
     parser.add_argument("--register", action="store_true",
                         help="read without the camera, as `meshseal detect` reads a picture without metadata")
     args = parser.parse_args()
+    if args.merge:
+        merge(args.merge)
+        return
+    if args.data is None:
+        parser.error("--data is required (or --merge)")
     watermarker = meshseal.load(args.model, "cpu")
     attacks = parse(args.attacks)
     dataset = MeshDataset(args.data, "test", seed=0)
@@ -84,14 +114,7 @@ def main() -> None:
     print(f"{args.model}: unmarked test meshes, {args.views} view(s) each, "
           f"{'registered' if args.register else 'camera known'}, "
           f"{time.time() - started:.0f} s\n")
-    print("| attack | pictures | at FPR 1e-6 | smallest p | p < 0.01 | p < 0.1 | KS p (uniform) |")
-    print("|---|---|---|---|---|---|---|")
-    for name, values in p_values.items():
-        values = np.array(values)
-        print(f"| {name} | {len(values)} | {int((values <= payload.FPR).sum())} | {values.min():.2g} | "
-              f"{(values < 0.01).mean():.3f} | {(values < 0.1).mean():.3f} | {stats.kstest(values, 'uniform').pvalue:.2g} |")
-
-
+    table(p_values)
     if args.json:
         args.json.write_text(json.dumps({"model": args.model, "views": args.views, "p_values": p_values}))
 
