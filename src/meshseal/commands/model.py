@@ -80,7 +80,9 @@ def register(subparsers) -> None:
     detect.set_defaults(func=run_detect)
 
     evaluate = subparsers.add_parser("eval", help="measure a model on a dataset split")
-    evaluate.add_argument("--data", type=Path, required=True, help="dataset folder (meshseal data build)")
+    evaluate.add_argument("--data", type=Path, required=True,
+                          help="dataset folder (meshseal data build), or a folder of your own mesh files: each "
+                               "textured single-material mesh in it, with --attacks or --register")
     evaluate.add_argument("--split", default="test", choices=("train", "test", "test_cc0", "all"))
     evaluate.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
     evaluate.add_argument("--views", type=positive_int(100), default=1, help="views per mesh (default 1)")
@@ -513,8 +515,12 @@ def run_eval(args) -> int:
     from ..evaluation.metrics import MAX_FLIP
 
     watermarker = load(args.model)
-    if not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file():
-        raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest); build one with 'meshseal data build'")
+    folder = not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file()
+    if folder and not args.data.is_dir():
+        raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest) nor a folder of meshes")
+    if folder and not (watermarker.informed and (args.register or args.attacks is not None)):
+        raise MeshsealError(f"{args.data}: a folder of meshes (no manifest) is evaluated as `detect` reads pictures: "
+                            f"give --attacks (e.g. none) or --register, with an informed model")
     kinds = args.texture_kinds.split(",") if args.texture_kinds else None
     if args.protocol == "seed":
         if args.sampler not in (None, "seed") or not set(kinds or ["noise"]) <= {"noise", "real"}:
@@ -524,7 +530,14 @@ def run_eval(args) -> int:
     args.sampler = args.sampler or "seed"
     paper_size = (args.protocol == "seed" or watermarker.method.paper_pictures) and not args.register
     size = args.size or ((400, 600) if paper_size else 128)  # blind surface models read the paper's pictures
-    dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
+    if folder:  # the user's own assets, as they are
+        from ..data.folder import AssetFolder
+
+        dataset = AssetFolder(args.data)
+        for path, why in dataset.skipped:
+            print(f"meshseal: note: {path}: left out: {why}", file=sys.stderr)
+    else:
+        dataset = MeshDataset(args.data, args.split, seed=args.seed, texture_kinds=kinds)
     if len(dataset) == 0:
         kinds_note = f" of texture kinds {','.join(kinds)}" if kinds else ""
         raise MeshsealError(f"{args.data}: the {args.split} split has no items{kinds_note}")
