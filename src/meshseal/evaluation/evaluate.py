@@ -140,7 +140,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     attacked = {name: [] for name in attacks or []}
     device = model.device
     for index in range(count):
-        batch = collate([dataset[index]], device)
+        item = dataset[index]
+        batch = collate([item], device)
         positions, _, uvs, faces = unpadded(batch, 0)  # the mesh's own UV use, before any charts
         palette = palette_share(positions, faces, uvs) >= PALETTE_WARNING
         if calibrated:  # palette faces charted, as `meshseal embed` marks the mesh
@@ -242,7 +243,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     "listed": coded and got is not None and _names(watermarker.decide([got], expect=listed), identity),
                     "seconds": time.perf_counter() - started})
             if log is not None and register:
-                log(f"mesh {index + 1}/{count} view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
+                log(f"mesh {index + 1}/{count} ({item.get('id', '?')}) view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
         if coded and views > 1:
             decision = watermarker.decide(readings) if readings else None
