@@ -569,7 +569,7 @@ def run_eval(args) -> int:
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
                            distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None,
                            progress=sys.stderr.isatty())
-    metrics = {"model": watermarker.name, "split": args.split, "sampler": args.sampler,
+    metrics = {"model": watermarker.name, "split": "folder" if folder else args.split, "sampler": args.sampler,
                "protocol": args.protocol or "ours", "texture_kinds": kinds or "all",
                "size": list(size) if isinstance(size, tuple) else size} | metrics
     if args.json:
