@@ -273,6 +273,7 @@ def test_eval_reads_a_folder_of_the_users_own_meshes(tmp_path, capsys):
     result = json.loads(out)
     assert result["n_meshes"] == 1 and result["split"] == "folder" and result["attacks"]["none"]["pictures"] == 1
     assert result["attacks"]["none"]["detected"] == 1.0 and result["attacks"]["jpeg90"]["pictures"] == 1
+    assert list(result["by_item"]) == ["bunny.glb"] and result["by_item"]["bunny.glb"]["none"] == 1.0
     assert "tetra.stl: left out: no texture" in err and "multi_material.glb: left out: 3 materials" in err
     assert_one_line_error(*run(capsys, "eval", "--data", tmp_path)[::2])
     (tmp_path / "bunny.glb").unlink()

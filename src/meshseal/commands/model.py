@@ -563,7 +563,7 @@ def run_eval(args) -> int:
         metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(size, 64),
                                       args.sampler, log if args.register else None, views=args.views,
                                       register=args.register, max_flip=max_flip, attacks=attacks,
-                                      strength=1.0 if args.strength is None else args.strength)
+                                      strength=1.0 if args.strength is None else args.strength, by_item=folder)
     else:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
@@ -577,21 +577,24 @@ def run_eval(args) -> int:
     else:
         table = metrics.pop("attacks", None)
         kinds = metrics.pop("by_kind", None)
+        items = metrics.pop("by_item", None)
         for key, value in metrics.items():
             print(f"{key}: {value:.4f}" if isinstance(value, float) else f"{key}: {value}")
         if table:
             print(attack_table(table))
         if kinds:
             print(kind_table(kinds, list(table or [])))
+        if items:
+            print(kind_table(items, list(table or []), "mesh"))
     return 0
 
 
-def kind_table(kinds: dict, attacks: list[str]) -> str:
-    """`evaluate_registered`'s detection rates by kind of picture (`evaluation.evaluate.picture_kinds`):
-    one row a kind, the pictures as read, then after each attack."""
+def kind_table(kinds: dict, attacks: list[str], what: str = "kind") -> str:
+    """`evaluate_registered`'s detection rates by kind of picture (`evaluation.evaluate.picture_kinds`), or
+    by item (`what` "mesh"): one row each, the pictures as read, then after each attack."""
     figure = lambda value: "-" if value is None else f"{value:.2f}"  # noqa: E731
     row_of = lambda cells: "| " + " | ".join(cells) + " |"  # noqa: E731
-    lines = [row_of(["kind", "pictures", "object FLIP", "detected", *attacks]), row_of(["---"] * (4 + len(attacks)))]
+    lines = [row_of([what, "pictures", "object FLIP", "detected", *attacks]), row_of(["---"] * (4 + len(attacks)))]
     lines += [row_of([kind, str(row["pictures"]), f"{row['flip_object']:.4f}", figure(row["detected"]),
                       *(figure(row.get(name)) for name in attacks)]) for kind, row in kinds.items()]
     return "\n".join(lines)

@@ -94,7 +94,7 @@ def _named(decision) -> bool:
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
                         size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
                         max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None,
-                        strength: float = 1.0) -> dict:
+                        strength: float = 1.0, by_item: bool = False) -> dict:
     """Informed models end to end, as `meshseal detect --register` runs: each test mesh is watermarked
     (with an error-corrected 32-bit ID when the model has a payload schema, else random raw bits),
     rendered `views` times (size x size 8-bit pictures, random views and lights from `sampler`'s
@@ -115,7 +115,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     `tpr_message_named`) is the share detected by the owner who names the message (`detect --expect`:
     the match's p-value, on the reading `detect` made without it); `listed` (and `tpr_among_listed`)
     the share detected and named by the owner who lists `LISTED` asset IDs, the mark's among them
-    (`detect --expect-ids`: the best match's p-value times the list's length)."""
+    (`detect --expect-ids`: the best match's p-value times the list's length). `by_item`: also
+    `result["by_item"]`, `by_kind`'s figures for each item (its `id`): a folder of the user's own meshes."""
     from .. import payload
     from ..api import Watermarker
     from ..mesh import Material, Mesh
@@ -218,7 +219,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity,
                         "wrong_known": truth is not None and truth.message not in (None, identity)}
-            rows.append(row | {"kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
+            rows.append(row | {"item": item.get("id", str(index)), "kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
                                "strength": used_strength})
             for name in attacked:
@@ -235,7 +236,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     got = _read_or_none(watermarker, hit, original, camera=cameras[[view]])
                 decision = None if got is None else watermarker.decide([got])
                 attacked[name].append({
-                    "kinds": kinds[view], "bit_acc": 0.5 if decision is None else agree(decision),
+                    "item": item.get("id", str(index)), "kinds": kinds[view],
+                    "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
                     "exact": coded and decision is not None and decision.message == identity,
                     "wrong": coded and decision is not None and decision.message not in (None, identity),
@@ -286,17 +288,21 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                       "flip_object": mean("flip_object", part) if part else None}
                                for name, part in (("uv_mapped", [r for r in rows if not r["palette"]]),
                                                   ("palette", [r for r in rows if r["palette"]]))}
-    if coded:  # by kind of picture (`picture_kinds`): detected as read, and after each attack
+    def split(belongs) -> dict:  # detected as read, and after each attack, of the pictures that `belongs` takes
+        part = [r for r in rows if belongs(r)]
+        entry = {"pictures": len(part), "detected": mean("detected", part),
+                 "detected_known_camera": mean("detected_known", part), "flip_object": mean("flip_object", part)}
+        for name, table in attacked.items():
+            hit = [r for r in table if belongs(r)]
+            entry[name] = mean("detected", hit) if hit else None
+        return entry
+
+    if coded:  # by kind of picture (`picture_kinds`)
         names = sorted({kind for r in rows for kind in r["kinds"]}, key=KIND_ORDER.index)
-        result["by_kind"] = {}
-        for kind in names:
-            part = [r for r in rows if kind in r["kinds"]]
-            entry = {"pictures": len(part), "detected": mean("detected", part),
-                     "detected_known_camera": mean("detected_known", part), "flip_object": mean("flip_object", part)}
-            for name, table in attacked.items():
-                hit = [r for r in table if kind in r["kinds"]]
-                entry[name] = mean("detected", hit) if hit else None
-            result["by_kind"][kind] = entry
+        result["by_kind"] = {kind: split(lambda r, kind=kind: kind in r["kinds"]) for kind in names}
+    if coded and by_item:
+        result["by_item"] = {name: split(lambda r, name=name: r["item"] == name)
+                             for name in dict.fromkeys(r["item"] for r in rows)}
     if attacked:
         result["attacks"] = {name: {"pictures": len(part), "detected": mean("detected", part) if coded else None,
                                     "exact": mean("exact", part) if coded else None,
@@ -309,7 +315,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "wrong_message_known_camera",
             "fpr_threshold", "by_uv_map",
             "tpr_message_named", "tpr_among_listed", "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
-            "strength_lowered", "by_kind",
+            "strength_lowered", "by_kind", "by_item",
             "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
     return result
 
