@@ -142,6 +142,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     device = model.device
     for index in range(count):
         item = dataset[index]
+        name_of_item = item.get("id", str(index))  # where the rows say which mesh they come from (`by_item`)
         batch = collate([item], device)
         positions, _, uvs, faces = unpadded(batch, 0)  # the mesh's own UV use, before any charts
         palette = palette_share(positions, faces, uvs) >= PALETTE_WARNING
@@ -219,7 +220,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                         "detected_known": truth is not None and bool(truth.detected),
                         "exact_known": truth is not None and truth.message == identity,
                         "wrong_known": truth is not None and truth.message not in (None, identity)}
-            rows.append(row | {"item": item.get("id", str(index)), "kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
+            rows.append(row | {"item": name_of_item, "kinds": kinds[view], "palette": palette, "psnr_object": seen["psnr_object"], "ssim_object": seen["ssim_object"],
                                "flip_object": seen["flip_object"], "psnr_texture_shown": texture_psnr,
                                "strength": used_strength})
             for name in attacked:
@@ -236,7 +237,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     got = _read_or_none(watermarker, hit, original, camera=cameras[[view]])
                 decision = None if got is None else watermarker.decide([got])
                 attacked[name].append({
-                    "item": item.get("id", str(index)), "kinds": kinds[view],
+                    "item": name_of_item, "kinds": kinds[view],
                     "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
                     "exact": coded and decision is not None and decision.message == identity,
@@ -245,7 +246,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     "listed": coded and got is not None and _names(watermarker.decide([got], expect=listed), identity),
                     "seconds": time.perf_counter() - started})
             if log is not None and register:
-                log(f"mesh {index + 1}/{count} ({item.get('id', '?')}) view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
+                log(f"mesh {index + 1}/{count} ({name_of_item}) view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
         if coded and views > 1:
             decision = watermarker.decide(readings) if readings else None
