@@ -120,16 +120,26 @@ def _opening(mask: np.ndarray) -> np.ndarray:
     return opened
 
 
+START_SPREAD = 4.0  # `background_plane` starts from the border pixels within this many thresholds of its median colour ...
+START_SHARE = 0.25  # ... where at least this share of the border is
+
+
 def background_plane(image: np.ndarray, threshold: float = 0.03, rounds: int = 3) -> np.ndarray:
     """The picture's background (H, W, 3) as a linear ramp per channel (a plain colour is the flat
     case) fitted to the border by least squares; border pixels more than `threshold` off the fit (the
-    object touching the frame) are dropped and the fit repeated."""
+    object touching the frame) are dropped and the fit repeated. The first fit takes only the border
+    pixels within START_SPREAD thresholds of the border's median colour (all of them where that leaves
+    under START_SHARE): an object touching the frame along a tenth of the border, darker than the
+    background, would otherwise pull a fit of every pixel off the background everywhere, leave no
+    pixel within the threshold and the picture all object."""
     height, width = image.shape[:2]
     ys, xs, whole, border = _plane_grid(height, width)
     design = lambda y, x: np.stack([np.ones_like(x, dtype=np.float64), x / width, y / height], -1)  # noqa: E731
     rows, columns = ys[border], xs[border]
     values = image[border].astype(np.float64)
-    keep = np.ones(len(values), dtype=bool)
+    keep = np.abs(values - np.median(values, axis=0)).max(-1) <= START_SPREAD * threshold
+    if keep.mean() < START_SHARE:
+        keep = np.ones(len(values), dtype=bool)
     for _ in range(rounds):
         coefficients, *_ = np.linalg.lstsq(design(rows[keep], columns[keep]), values[keep], rcond=None)
         off = np.abs(design(rows, columns) @ coefficients - values).max(-1) > threshold

@@ -148,16 +148,19 @@ class Reader:
     def _object_guesses(self, pixels: np.ndarray, mask: np.ndarray, alpha, original):
         """The object's pixels as registration should try them, and how to cut them again from a
         registered silhouette (None where the picture's alpha channel gives them): the plain-background
-        `mask`, and where the background is busy (`segmentation.busy_background`) a cut guided by the
-        original's colours too, first, unless the two agree; `segmentation.recut` of the picture (a
+        `mask`, and where the background may be busy (`segmentation.busy_background`) a cut guided by the
+        original's colours too, unless the two agree: first where under PLAIN_FIRST of the border is
+        plain, second where more is (an object the frame cuts off on a plain background, which the
+        plain mask finds and the colour-guided cut may lose parts of); `segmentation.recut` of the picture (a
         dark object on a dark backdrop loses parts of it to the plain-background mask, too)."""
-        from .segmentation import GUESSES_AGREE, busy_background, guided_object_mask, mask_iou, recut
+        from .segmentation import GUESSES_AGREE, PLAIN_FIRST, PLAIN_SHARE, guided_object_mask, mask_iou, plain_share, recut
 
         guesses = [mask]
-        if alpha is None and busy_background(pixels):
+        share = 1.0 if alpha is not None else plain_share(pixels)
+        if share < PLAIN_SHARE:
             guided = guided_object_mask(pixels, self.on_cpu(original))
             if int(guided.sum()) >= MIN_OBJECT_PIXELS and mask_iou(guided, mask) < GUESSES_AGREE:
-                guesses.insert(0, guided)
+                guesses.insert(0 if share < PLAIN_FIRST else 1, guided)
         again = None if alpha is not None else (lambda silhouette: recut(pixels, silhouette))
         return [torch.from_numpy(np.ascontiguousarray(g)) for g in guesses], again
 

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 PLAIN_SHARE = 0.99  # a background is plain (or a smooth ramp) when the ramp fit explains this share of the border
+PLAIN_FIRST = 0.8  # ... and where it explains at least this share (an object the frame cuts off), the plain guess is registered first
 GUESSES_AGREE = 0.95  # a guided cut whose IoU with the plain-background mask is at least this adds nothing
 BINS = 16  # colour histogram bins per channel
 CUT_SIZE = 384  # GrabCut runs on a copy whose longer side is at most this many pixels
@@ -26,15 +27,23 @@ KEEP_AREA = 0.9  # the largest connected parts of a cut holding this share of it
 RECUT_BAND = 8  # pixels around a registered silhouette that `recut` may add (in a 256-pixel picture; scaled with its size)
 
 
-def busy_background(image: np.ndarray, threshold: float = 0.03) -> bool:
-    """Whether the picture (H, W, 3) in [0, 1] may have a busy background: under PLAIN_SHARE of its
-    border lies within `threshold` of the linear ramp `framing.background_plane` fits to it. A plain
-    colour or a gradient puts all of it there; an object the frame cuts off, or a texture atlas with
-    plain patches, most of it, so the bar is high and the caller also keeps the plain guess."""
+def plain_share(image: np.ndarray, threshold: float = 0.03) -> float:
+    """The share of the picture's (H, W, 3, in [0, 1]) border within `threshold` of the linear ramp
+    `framing.background_plane` fits to it: 1 for a plain colour or a gradient, less where the object
+    touches the frame or the background is busy."""
     from .framing import background_plane, border_pixels
 
     off = np.abs(border_pixels(image) - border_pixels(background_plane(image, threshold))).max(-1)
-    return float(np.mean(off <= threshold)) < PLAIN_SHARE
+    return float(np.mean(off <= threshold))
+
+
+def busy_background(image: np.ndarray, threshold: float = 0.03) -> bool:
+    """Whether the picture (H, W, 3) in [0, 1] may have a busy background: under PLAIN_SHARE of its
+    border lies within `threshold` of the linear ramp `framing.background_plane` fits to it
+    (`plain_share`). A plain colour or a gradient puts all of it there; an object the frame cuts off,
+    or a texture atlas with plain patches, most of it, so the bar is high and the caller also keeps
+    the plain guess."""
+    return plain_share(image, threshold) < PLAIN_SHARE
 
 
 def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
