@@ -393,6 +393,21 @@ def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
     assert "add --register" in capsys.readouterr().err
 
 
+def test_registered_eval_also_reads_each_attacked_picture_with_its_camera(dataset):
+    """Registered, each attacked picture whose frame the attack keeps is also read with its true camera
+    (`detected_known_camera`: what registration cost after that attack); untouched, that reading is the
+    plain camera-known one; a crop changes the frame, so it has none."""
+    from meshseal.evaluation import evaluate as E
+    from meshseal.data.dataset import MeshDataset
+
+    result = E.evaluate_registered(meshseal.load().model, MeshDataset(dataset, "test"), n_meshes=1, size=64,
+                                   attacks=["none", "resize0.75", "crop0.8"])
+    rows = result["attacks"]
+    assert rows["none"]["detected_known_camera"] == result["tpr_known_camera"]
+    assert 0.0 <= rows["resize0.75"]["detected_known_camera"] <= 1.0
+    assert "detected_known_camera" not in rows["crop0.8"]
+
+
 def test_an_attacks_pictures_do_not_depend_on_the_others_in_the_list(dataset, monkeypatch):
     """An attack's random draws (the noise) come from its name, not its place in `--attacks`: the
     pictures after `noise2` are the same alone and after another attack."""

@@ -601,12 +601,17 @@ def kind_table(kinds: dict, attacks: list[str], what: str = "kind") -> str:
 
 
 def attack_table(table: dict) -> str:
-    """`evaluate_registered`'s per-attack figures as a Markdown table."""
+    """`evaluate_registered`'s per-attack figures as a Markdown table; registered, a column more: the
+    same pictures detected when read with their camera (where the attack keeps it), what registration
+    cost."""
     figure = lambda value: "-" if value is None else f"{value:.3f}"  # noqa: E731
+    known = any("detected_known_camera" in row for row in table.values())
     lines = ["| attack | pictures | detected | exact | wrong message | detected, message named | detected and named, "
-             "1,000 IDs listed | bit accuracy | seconds |", "|---|---|---|---|---|---|---|---|---|"]
+             "1,000 IDs listed | bit accuracy | seconds |" + (" detected, camera known |" if known else ""),
+             "|---|---|---|---|---|---|---|---|---|" + ("---|" if known else "")]
     lines += [f"| {name} | {row['pictures']} | {figure(row['detected'])} | {figure(row['exact'])} | {figure(row.get('wrong'))} | "
               f"{figure(row.get('named'))} | {figure(row.get('listed'))} | {figure(row['bit_acc'])} | {row['seconds']:.2f} |"
+              + (f" {figure(row.get('detected_known_camera'))} |" if known else "")
               for name, row in table.items()]
     return "\n".join(lines)
 

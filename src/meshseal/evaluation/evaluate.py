@@ -21,6 +21,7 @@ from ..render import MeshRenderer
 from ..methods.batches import batch_mark_grid, batch_texels_used, charted_item, unpadded
 from .asset_attacks import ASSET_ATTACKS
 from .asset_attacks import apply as attack_asset
+from .attacks import GEOMETRIC
 from .attacks import apply as attack_picture
 from .metrics import (
     BUDGET_VIEWS,
@@ -236,7 +237,13 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                 else:
                     got = _read_or_none(watermarker, hit, original, camera=cameras[[view]])
                 decision = None if got is None else watermarker.decide([got])
+                seconds = time.perf_counter() - started
+                known_hit = None  # registered, the same picture read with its camera too: what registration cost
+                if register and not _frame_changed(name):
+                    known_read = _read_or_none(watermarker, hit, original, camera=cameras[[view]])
+                    known_hit = coded and known_read is not None and bool(watermarker.decide([known_read]).detected)
                 attacked[name].append({
+                    "detected_known": known_hit,
                     "item": name_of_item, "kinds": kinds[view],
                     "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
@@ -244,7 +251,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                     "wrong": coded and decision is not None and decision.message not in (None, identity),
                     "named": coded and got is not None and _named(watermarker.decide([got], expect=identity)),
                     "listed": coded and got is not None and _names(watermarker.decide([got], expect=listed), identity),
-                    "seconds": time.perf_counter() - started})
+                    "seconds": seconds})
             if log is not None and register:
                 log(f"mesh {index + 1}/{count} ({name_of_item}) view {view}: bit_acc {row['bit_acc']:.4f} (known camera "
                     f"{row['bit_acc_known']:.4f}) pose error {row['pose']:.2f} px, IoU {row['iou']:.3f}, {seconds:.1f} s")
@@ -310,7 +317,10 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                     "wrong": mean("wrong", part) if coded else None,
                                     "named": mean("named", part) if coded else None,
                                     "listed": mean("listed", part) if coded else None, "bit_acc": mean("bit_acc", part),
-                                    "seconds": mean("seconds", part)} for name, part in attacked.items()}
+                                    "seconds": mean("seconds", part)}
+                              | ({"detected_known_camera": mean("detected_known", part)}
+                                 if coded and part and part[0]["detected_known"] is not None else {})
+                              for name, part in attacked.items()}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "wrong_message_known_camera",
@@ -319,6 +329,13 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             "strength_lowered", "by_kind", "by_item",
             "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
     return result
+
+
+def _frame_changed(attack: str) -> bool:
+    """Whether a picture attack changes the picture's frame (a crop, a screenshot's canvas), so that
+    the camera it was rendered with no longer reads it; a resized picture keeps its camera (a camera is
+    the same for a picture at any size), as do the asset's attacks and the photometric ones."""
+    return attack in GEOMETRIC and not attack.startswith("resize")
 
 
 def _finite(value) -> float | None:
