@@ -125,6 +125,31 @@ def test_a_cut_that_took_in_a_patch_of_the_background_is_mended_from_its_registr
     assert pose_error(bunny, camera, again.camera, 256, 256) < 0.5
 
 
+@pytest.mark.heavy
+def test_a_later_guess_is_made_only_when_the_search_reaches_it():
+    """`register_with_masks` takes a later guess as a function and calls it only when the guesses
+    before it are not confirmed: never after a right registration; after a wrong first guess (a
+    square of the background), it is called, a None from it is passed over, and the guess it makes
+    is registered."""
+    from meshseal.reading.registration import pose_error, register_with_masks
+
+    bunny = MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "bunny.glb"))))
+    picture, truth, camera = _picture(bunny, np.full((128, 128, 3), (0.2, 0.3, 0.35), dtype=np.float32), seed=5)
+    tensor, background = torch.from_numpy(picture).permute(2, 0, 1).float(), torch.tensor([0.2, 0.3, 0.35])
+    square = np.zeros_like(truth)
+    square[4:36, 4:36] = True
+    calls = []
+
+    def later(mask):
+        return lambda: calls.append(mask is not None) or (None if mask is None else torch.from_numpy(mask))
+
+    with torch.enable_grad():
+        right = register_with_masks(bunny, tensor, [torch.from_numpy(truth), later(square)], background)
+        assert calls == [] and pose_error(bunny, camera, right.camera, 128, 128) < 0.5
+        found = register_with_masks(bunny, tensor, [torch.from_numpy(square), later(None), later(truth)], background)
+    assert calls == [False, True] and pose_error(bunny, camera, found.camera, 128, 128) < 0.5
+
+
 def test_a_picture_pasted_into_a_screenshot_is_found_and_a_plain_picture_is_left_alone():
     """`framing.inner_picture`: a render pasted into a light window with a dark title bar is found as
     the rectangle it fills; a picture of an object on a plain background, and a plain rectangle object,

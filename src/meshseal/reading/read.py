@@ -50,8 +50,8 @@ def registration_factor(mask: np.ndarray) -> int:
 
 
 def enlarged(picture: torch.Tensor, masks: list[torch.Tensor], recut, factor: int):
-    """The picture (3, H, W) enlarged `factor` times (bicubic), its object guesses (H, W) likewise
-    (each pixel repeated) and `recut` (an enlarged silhouette -> an enlarged guess) working at the
+    """The picture (3, H, W) enlarged `factor` times (bicubic), its object guesses (H, W, or a function
+    making one, or None, when it is reached) likewise (each pixel repeated) and `recut` (an enlarged silhouette -> an enlarged guess) working at the
     picture's own size: what `register_with_masks` takes, at the size it registers at."""
     if factor == 1:
         return picture, masks, recut
@@ -64,7 +64,8 @@ def enlarged(picture: torch.Tensor, masks: list[torch.Tensor], recut, factor: in
         def again(silhouette: np.ndarray) -> np.ndarray:
             small = silhouette.reshape(silhouette.shape[0] // factor, factor, -1, factor).mean((1, 3)) > 0.5
             return np.repeat(np.repeat(recut(small), factor, 0), factor, 1)
-    return big, [grow(m) for m in masks], again
+    grown = lambda m: grow(m) if torch.is_tensor(m) else (lambda: None if (g := m()) is None else grow(g))  # noqa: E731
+    return big, [grown(m) for m in masks], again
 
 
 class Reader:
@@ -151,18 +152,27 @@ class Reader:
         `mask`, and where the background may be busy (`segmentation.busy_background`) a cut guided by the
         original's colours too, unless the two agree: first where under PLAIN_FIRST of the border is
         plain, second where more is (an object the frame cuts off on a plain background, which the
-        plain mask finds and the colour-guided cut may lose parts of); `segmentation.recut` of the picture (a
+        plain mask finds and the colour-guided cut may lose parts of), and then cut only if
+        registration reaches it (a function in the list: the cut renders the original 16 times); `segmentation.recut` of the picture (a
         dark object on a dark backdrop loses parts of it to the plain-background mask, too)."""
         from .segmentation import GUESSES_AGREE, PLAIN_FIRST, PLAIN_SHARE, guided_object_mask, mask_iou, plain_share, recut
 
-        guesses = [mask]
+        def guided() -> torch.Tensor | None:
+            cut = guided_object_mask(pixels, self.on_cpu(original))
+            if int(cut.sum()) < MIN_OBJECT_PIXELS or mask_iou(cut, mask) >= GUESSES_AGREE:
+                return None
+            return torch.from_numpy(np.ascontiguousarray(cut))
+
+        guesses = [torch.from_numpy(np.ascontiguousarray(mask))]
         share = 1.0 if alpha is not None else plain_share(pixels)
-        if share < PLAIN_SHARE:
-            guided = guided_object_mask(pixels, self.on_cpu(original))
-            if int(guided.sum()) >= MIN_OBJECT_PIXELS and mask_iou(guided, mask) < GUESSES_AGREE:
-                guesses.insert(0 if share < PLAIN_FIRST else 1, guided)
+        if share < PLAIN_FIRST:
+            cut = guided()
+            if cut is not None:
+                guesses.insert(0, cut)
+        elif share < PLAIN_SHARE:  # cut only if the plain mask's registration is not confirmed
+            guesses.append(guided)
         again = None if alpha is not None else (lambda silhouette: recut(pixels, silhouette))
-        return [torch.from_numpy(np.ascontiguousarray(g)) for g in guesses], again
+        return guesses, again
 
     def on_cpu(self, original):
         """The prepared original on the CPU, where registration runs whatever the model's device (its

@@ -990,7 +990,8 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
 def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,
                         fov_y: float = FOV, recut=None) -> Registration:
-    """`register` with each of several guesses of the object's pixels (H, W) in turn (e.g. a busy
+    """`register` with each of several guesses of the object's pixels (H, W; after the first, also a
+    function making one, or None, called only when the search reaches it) in turn (e.g. a busy
     background's colour-guided cut, then the plain-background threshold, when they disagree), keeping
     the camera under which the original's texture explains the picture best (`texture_misfit` over
     the registered silhouette's own interior, so no guess judges itself). A guess whose camera
@@ -1019,6 +1020,10 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
         return False
 
     for index, mask in enumerate(masks):
+        if callable(mask):  # a guess made only when it is reached
+            mask = mask()
+            if mask is None:
+                continue
         attempt(mask, first if index == 0 else None)
         for _ in range(RECUT_ROUNDS if recut is not None else 0):
             # `best` changes only when a guess fits better, so the last camera cut from is the only repeat.
