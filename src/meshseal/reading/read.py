@@ -28,7 +28,7 @@ class Reading:
     camera: str | None
     registration_iou: float | None
     found: object = None  # the Cameras used to un-render (informed methods)
-    tries: float = 1.0  # what the decision multiplies the p-value by for the cameras a second look could try
+    tries: int = 1  # what the decision multiplies the p-value by for the cameras a second look could try
     second_look: tuple = ()  # registered: (picture, mask, Registration.alternatives), until `second_look.look_again`
     object_mask: torch.Tensor | None = None  # camera from metadata: the picture's object (H, W) bool, for `why_not`
 

@@ -14,7 +14,6 @@ LOOK_AGAIN_BELOW = 0.05  # a second look finishes the other views where the firs
 # pictures it was set on), and an unmarked picture's first p is mostly above it (sharpening would cost
 # it its renders for nothing).
 SHARPEN_BELOW = 0.5
-FIRST_SHARE = 0.8  # the share of the false-positive rate a second look leaves to the registered camera's own reading
 
 
 def look_again(reader, reading: Reading, original, key=None, expect=None, search: bool = True) -> Reading:
@@ -30,13 +29,11 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     mark, so that unmarked pictures pay little for it. Sharpening runs only where the registered
     camera's p-value is at most SHARPEN_BELOW, and again (light refitted at the sharpened camera) where
     its first reading hints at a mark, SHARPEN_ROUNDS times at most. The
-    p-value pays for all of it (a weighted Bonferroni over three stages, the false-positive rate
-    shared as FIRST_SHARE to the registered camera and the rest evenly to the sharpened ones and the
-    alternatives: x1.25 at the registered camera, x10R at a sharpened one of R rounds, x10K at the
-    best of K alternatives; without alternatives x1.25 and x5R), so that a reading's p-value stays
-    valid however the camera was picked (rough readings only decide what to finish). The registered
-    camera is right for most pictures and a second look's finds are mostly far under the threshold,
-    so the first reading gets most of the rate: an even split cost lossy pictures a few points. Other readings, and all of them with `search` False (pooling), come back as they
+    p-value pays for all of it (Bonferroni over three stages, each given a third: the registered
+    camera, the sharpened ones, the alternatives): x3 at the registered camera, x3R at a sharpened
+    one of R rounds, x3K at the best of K alternatives (x2 and x2R without alternatives), so that a
+    reading's p-value stays valid however the camera was picked (rough readings only decide what
+    to finish). Other readings, and all of them with `search` False (pooling), come back as they
     are, without what a second look needs."""
     from .. import payload
     from .registration import sharpen, silhouette_iou
@@ -47,8 +44,8 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     method = reader.method
     if not search or not method.second_look:
         return replace(reading, second_look=())
-    later = (1.0 - FIRST_SHARE) / (2 if alternatives else 1)  # each later stage's share of the rate
-    first = replace(reading, second_look=(), tries=1.0 / FIRST_SHARE)
+    stages = 3 if alternatives else 2
+    first = replace(reading, second_look=(), tries=stages)
     decision = method.decide([first], key, expect)
     if decision.detected:
         return first
@@ -57,7 +54,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
 
     on_cpu, on_device = reader.on_cpu(original), picture.to(reader.device)
 
-    def under(camera, tries: float) -> tuple[Reading, float]:
+    def under(camera, tries: int) -> tuple[Reading, float]:
         camera = camera.to(reader.device)
         other = replace(first, evidence=method.evidence(original, on_device, camera), found=camera, tries=tries)
         return other, method.decide([other], key, expect).p_value
@@ -65,7 +62,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     camera = reading.found.to("cpu")
     for _ in range(SHARPEN_ROUNDS if decision.p_value <= SHARPEN_BELOW else 0):  # each round refits the light at the camera the last one found
         camera = sharpen(on_cpu, camera, picture, mask[None].float())
-        sharpened, p_value = under(camera, SHARPEN_ROUNDS / later)
+        sharpened, p_value = under(camera, stages * SHARPEN_ROUNDS)
         if p_value < best_p:
             best, best_p = sharpened, p_value
         if payload.detected(p_value) or p_value > LOOK_AGAIN_BELOW:
@@ -77,7 +74,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
             rough = replace(first, evidence=method.evidence(original, on_device, alternative.rough().to(reader.device)))
             if method.decide([rough], key, expect).p_value > LOOK_AGAIN_BELOW:
                 continue
-        other, p_value = under(alternative.finish(), len(alternatives) / later)
+        other, p_value = under(alternative.finish(), stages * len(alternatives))
         if p_value < best_p:
             best, best_p = other, p_value
     # Only the kept camera's silhouette overlap is reported: the others are never rendered for it.
