@@ -51,8 +51,9 @@ def registration_factor(mask: np.ndarray) -> int:
 
 def enlarged(picture: torch.Tensor, masks: list[torch.Tensor], recut, factor: int):
     """The picture (3, H, W) enlarged `factor` times (bicubic), its object guesses (H, W, or a function
-    making one, or None, when it is reached) likewise (each pixel repeated) and `recut` (an enlarged silhouette -> an enlarged guess) working at the
-    picture's own size: what `register_with_masks` takes, at the size it registers at."""
+    making one, or None, when it is reached) likewise (each pixel repeated) and `recut` (an enlarged
+    silhouette -> an enlarged guess) working at the picture's own size: what `register_with_masks`
+    takes, at the size it registers at."""
     if factor == 1:
         return picture, masks, recut
     import torch.nn.functional as F
@@ -153,9 +154,11 @@ class Reader:
         original's colours too, unless the two agree: first where under PLAIN_FIRST of the border is
         plain, second where more is (an object the frame cuts off on a plain background, which the
         plain mask finds and the colour-guided cut may lose parts of), and then cut only if
-        registration reaches it (a function in the list: the cut renders the original 16 times); `segmentation.recut` of the picture (a
-        dark object on a dark backdrop loses parts of it to the plain-background mask, too)."""
-        from .segmentation import GUESSES_AGREE, PLAIN_FIRST, PLAIN_SHARE, guided_object_mask, mask_iou, plain_share, recut
+        registration reaches it (a function in the list: the cut renders the original 16 times);
+        `segmentation.recut` of the picture (a dark object on a dark backdrop loses parts of it to the
+        plain-background mask, too)."""
+        from .segmentation import (GUESSES_AGREE, PLAIN_FIRST, PLAIN_SHARE, guided_object_mask, mask_iou,
+                                   plain_share, recut)
 
         def guided() -> torch.Tensor | None:
             cut = guided_object_mask(pixels, self.on_cpu(original))
