@@ -1,5 +1,6 @@
 """Registration's shortcuts (issue #46): each does the work it replaces, on the fixtures."""
 
+import math
 from dataclasses import replace
 
 import torch
@@ -140,3 +141,68 @@ def test_a_first_candidate_that_fits_the_texture_is_taken_without_refining_the_o
     refined_batches.clear()
     registration._refine_candidates(None, candidates(0.05, 0.01, 2.0), levels)  # no `accept`: all at once
     assert refined_batches == [3]
+
+
+def test_each_pixels_surface_point_is_the_interpolated_fragment():
+    """The silhouette stage's world point at a pixel, its ray at the z-buffer's depth, is the visible
+    surface point the fragments interpolate (and the coverage is the rasterizer's); off the object it
+    is the ray at the object's mean depth."""
+    from meshseal.render import surface_points
+
+    mesh = _bunny()
+    cameras = sample_any_view_cameras(3, torch.Generator().manual_seed(5))
+    cover, points = registration._pixel_points(mesh, cameras, 48)
+    fragments, covered = registration._rasterized(mesh, cameras, 48, 48)
+    assert torch.equal(cover[:, 0], covered)
+    expected, _ = surface_points(mesh, fragments, cameras)
+    assert torch.allclose(points.reshape(-1, 3)[fragments.pixel], expected, atol=1e-4)
+    view = cameras.view_matrix()
+    depth = -(points @ view[:, 2, :3, None] + view[:, 2, None, 3:])[..., 0]  # (B, S*S) along the view axis
+    on = covered.reshape(3, -1) > 0.5
+    for k in range(3):
+        assert torch.allclose(depth[k][~on[k]], depth[k][on[k]].mean().expand(int((~on[k]).sum())), atol=1e-4)
+
+
+def test_one_zoomed_step_tells_another_lens_from_the_assumed_one():
+    """The zoom probe: from a pose refined on the texture with the assumed field of view, one
+    Gauss-Newton step with the zoom turns the field of view by ZOOM_PROBE_DEGREES or more on a picture
+    made through a narrower lens (as a central crop is), and by less on a picture of the assumed lens."""
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    turned = {}
+    for fov in (camera.fov_y, camera.fov_y * 0.8):
+        lens = replace(camera, fov_y=fov)
+        distance = (camera.at - camera.eye).norm() * math.tan(math.radians(camera.fov_y) / 2) / math.tan(math.radians(fov) / 2)
+        lens = replace(lens, eye=camera.at + (camera.eye - camera.at) / (camera.at - camera.eye).norm() * distance)
+        out = MeshRenderer()(mesh, lens, lights, 128, 128, (0.5, 0.5, 0.5))
+        picture, mask = out.image, (out.rgba[..., 3] > 0.5).float()
+        start = replace(lens, fov_y=camera.fov_y, eye=camera.eye)  # the assumed lens, placed to match the size
+        found = registration.refine_on_texture(mesh, start, picture, mask)
+        probe = registration._texture_level(mesh, found, picture, mask, registration.ZOOM_PROBE_SIGMA, 1, 3, "all", True)
+        turned[fov] = abs(probe.fov_y - found.fov_y)
+    assert turned[camera.fov_y] < registration.ZOOM_PROBE_DEGREES <= turned[camera.fov_y * 0.8], turned
+
+
+def test_the_zoomed_run_is_made_only_where_the_probe_asks_for_it(monkeypatch):
+    """`refine_on_texture_twice` runs the zoomed refinement from its best where the misfit is ZOOM_TRY or
+    more and one zoomed step turns the field of view by ZOOM_PROBE_DEGREES or more, and not otherwise."""
+    zoomed_runs, probe_turn = [], {}
+
+    def fake_refine(mesh, camera, picture, mask, light_from="all", zoom=False, **_):
+        if zoom:
+            zoomed_runs.append(light_from)
+            return replace(camera, fov_y=camera.fov_y - 5.0)
+        return replace(camera, eye=camera.eye + 1.0)
+
+    monkeypatch.setattr(registration, "refine_on_texture", fake_refine)
+    monkeypatch.setattr(registration, "texture_misfits", lambda mesh, cameras, *a, **k: [0.5, 0.01 + probe_turn["misfit"]][:len(cameras)])
+    monkeypatch.setattr(registration, "texture_misfit", lambda mesh, camera, *a, **k: 0.0 if camera.fov_y < 50 else 1.0)
+    monkeypatch.setattr(registration, "_texture_level",
+                        lambda mesh, camera, *a, **k: replace(camera, fov_y=camera.fov_y + probe_turn["turn"]))
+    camera = replace(_view()[0], fov_y=50.0)
+    picture, mask = torch.zeros(1, 3, 32, 32), torch.ones(1, 32, 32)
+    for misfit, turn, runs in ((0.2, 0.5, 0), (0.2, 3.0, 1), (0.0, 3.0, 0)):
+        zoomed_runs.clear()
+        probe_turn.update(misfit=misfit, turn=turn)
+        found = registration.refine_on_texture_twice(None, camera, picture, mask)
+        assert len(zoomed_runs) == runs, (misfit, turn, zoomed_runs)
+        assert found.fov_y == (45.0 if runs else 50.0)

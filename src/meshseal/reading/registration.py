@@ -38,7 +38,9 @@ TEXTURE_SCALE_SIGMA = 2.0  # coarse texture levels run shrunk so that their blur
 TEXTURE_SIGMAS = (4.0, 2.0, 1.0, 0.5)  # the texture stage's bands, widest first (pixels of blur)
 ROBUST_SCALE = 2.0  # the texture stage's Cauchy scale, in median absolute residuals
 ROBUST_MIN_SIGMA = 2.0  # ... on levels blurred this much or more (finer ones: least squares)
-FREEZE_DAMPING = 1e-3  # silhouette refinement stops a camera whose step is under 0.01 px at a damping of at most this
+FREEZE_DAMPING = 1e-3  # silhouette refinement stops a camera whose step is under SILHOUETTE_DONE px at a damping of at most this
+SILHOUETTE_DONE = 0.01  # px: ... on the picked candidate's fine levels (SEARCH_SIZE) ...
+SILHOUETTE_COARSE_DONE = 0.05  # ... and on the candidates' coarse ones (COMPARE_SIZE), which finer levels follow
 TEXTURE_DONE = 0.01  # a texture level ends once its step is under this many pixels (a step half as long as one that failed
 TEXTURE_COARSE_DONE = 0.05  # ... would be, it ends there too); on the coarse (robust) levels, which finer ones follow, this
 PICK_SIGMAS = (1.0, 2.0)  # the refined candidates are told apart by their texture misfit in these bands
@@ -63,6 +65,8 @@ TEXTURE_DAMPING = 1e-3  # the texture stage's Levenberg-Marquardt damping, times
 ZOOM_DAMPING = 1e-6  # ... and with the zoom, whose valley along the view axis that damping would hold back
 ZOOM_TRY = 0.03  # the texture stage tries the zoom where the texture misfit (sigma 1) is still this or more (a registered pose of the assumed lens fits under it) ...
 ZOOM_GAIN = 0.9  # ... and the texture stage keeps the zoomed camera only if its texture misfit is under this share of the other's
+ZOOM_PROBE_SIGMA = 1.0  # ... and only where one step of the zoomed move on this band turns the field of view ...
+ZOOM_PROBE_DEGREES = 1.0  # ... by this many degrees or more (a crop's picture turns it by several; a picture of the assumed lens hardly at all)
 ZOOM_ROUNDS = 3  # the texture stage's coarse-to-fine passes at most ...
 ZOOM_AGAIN = 0.5  # ... another one while the last changed the field of view by this many degrees or more
 SHARPEN_STEPS = (0.2, 0.025)  # pixels: `sharpen`'s first and last step
@@ -375,22 +379,24 @@ def _screen_flow(start: Cameras, delta: torch.Tensor, points: torch.Tensor, heig
 def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
     """Hard coverage (B, 1, S, S) of each camera's size x size picture and a world point (B, S*S, 3)
     at every pixel: the visible surface on the object, and on the background the pixel's ray at the
-    object's mean depth (the silhouette stage's flow is needed just outside the silhouette too)."""
-    from ..render import surface_points
+    object's mean depth (the silhouette stage's flow is needed just outside the silhouette too). The
+    surface point is the pixel's ray at the depth the z-buffer kept (exact: z / w is affine on the
+    screen), so no fragment is interpolated."""
+    from ..render.rasterizer import visible_faces_and_depth
 
     n_batch = len(cameras)
-    fragments, cover = _rasterized(mesh, cameras, size, size)
-    points, _ = surface_points(mesh, fragments, cameras)
+    faces, ndc = visible_faces_and_depth(_clip(mesh, cameras, size, size), mesh.faces, size, size)
+    covered = (faces >= 0).reshape(n_batch, -1)
+    cover = covered.to(mesh.positions.dtype).reshape(n_batch, 1, size, size)
+    # gluPerspective: ndc = -A + B / depth, with A, B the projection's third row (`perspective`).
+    a = (cameras.far + cameras.near) / (cameras.near - cameras.far)
+    b = 2.0 * cameras.far * cameras.near / (cameras.near - cameras.far)
+    visible_depth = torch.where(covered, b / (ndc.reshape(n_batch, -1) + a), 0.0)
+    count = covered.sum(1)
+    mean_depth = visible_depth.sum(1) / count.clamp_min(1)
+    depth = torch.where(covered, visible_depth, mean_depth[:, None]).to(mesh.positions.dtype)  # (B, S*S)
     view = cameras.view_matrix()
     rotation, translation = view[:, :3, :3], view[:, :3, 3]
-    # Depth along the view axis: the view matrix's third row alone, per fragment.
-    z_row = view[:, 2].index_select(0, fragments.batch)  # (P, 4)
-    visible_depth = -((z_row[:, :3] * points).sum(-1) + z_row[:, 3])
-    depth = visible_depth.new_zeros(n_batch * size * size).index_copy(0, fragments.pixel, visible_depth)
-    count = depth.new_zeros(n_batch).index_add(0, fragments.batch, torch.ones_like(fragments.batch, dtype=depth.dtype))
-    mean_depth = depth.new_zeros(n_batch).index_add(0, fragments.batch, visible_depth) / count.clamp_min(1)
-    covered = cover.reshape(n_batch, -1) > 0.5
-    depth = torch.where(covered, depth.reshape(n_batch, -1), mean_depth[:, None])  # (B, S*S)
     centres = (torch.arange(size, dtype=depth.dtype) + 0.5) / size * 2 - 1
     ndc_y, ndc_x = torch.meshgrid(-centres, centres, indexing="ij")
     focal = 1.0 / math.tan(math.radians(cameras.fov_y) / 2)
@@ -398,19 +404,22 @@ def _pixel_points(mesh: MeshBatch, cameras: Cameras, size: int):
     y = (ndc_y.reshape(1, -1) - cameras.principal[1]) / focal * depth
     in_camera = torch.stack([x, y, -depth], -1)  # (B, S*S, 3)
     world = ((in_camera - translation[:, None]) @ rotation)  # R^T (p - t), row vectors
-    return cover[:, None], world
+    return cover, world
 
 
-def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, iterations: int = 10) -> Cameras:
+def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, iterations: int = 10,
+                        done_step: float | None = None) -> Cameras:
     """Gauss-Newton on a rigid move of each camera of `start` (`_moved`; independent, one batch) that
     brings its silhouette onto the picture's, both blurred by `sigma` pixels. The Jacobian is the
     blurred silhouette's gradient times each pose coordinate's screen flow (as `_flow_jacobian`), so an
     iteration costs one hard render and no backward pass; a camera whose step does not lower its cost
-    keeps its pose and damps harder (Levenberg-Marquardt)."""
+    keeps its pose and damps harder (Levenberg-Marquardt). A camera stops once its step is under
+    `done_step` pixels (SILHOUETTE_DONE by default) at a damping of at most FREEZE_DAMPING."""
     from ..imaging import gaussian_blur
 
     _, target_mask, inside = level
     size = target_mask.shape[-1]
+    done_step = SILHOUETTE_DONE if done_step is None else done_step
     n_batch = len(start)
     blurred_target = gaussian_blur(target_mask, sigma).reshape(1, -1)
     # Only pixels whose blur sees nothing beyond the picture's edge: past it the object may go on.
@@ -426,34 +435,45 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
     with torch.no_grad():
         blurred, points, cost = evaluate(start, delta)
         running = list(range(n_batch))  # the cameras still moving
+        # A rejected step leaves its camera where it was: its normal equations are kept and solved
+        # again with more damping, not rebuilt.
+        normal_all, rhs_all = torch.zeros(n_batch, 6, 6), torch.zeros(n_batch, 6)
+        stale = [True] * n_batch
         for _ in range(iterations):
+            renew = [camera for camera in running if stale[camera]]
+            if renew:
+                run = torch.tensor(renew)
+                some = start if len(renew) == n_batch else start[renew]
+                n_run = len(renew)
+                gradient_y, gradient_x = torch.gradient(blurred[run, 0], dim=(1, 2))
+                gradient_x, gradient_y = gradient_x.reshape(n_run, -1), gradient_y.reshape(n_run, -1)
+                # Only pixels where the blurred silhouette varies have a Jacobian row (elsewhere the
+                # image gradient is exactly zero): the screen flow is taken at those alone, per
+                # camera, padded to the longest list with rows of zero weight.
+                active = ((gradient_x != 0) | (gradient_y != 0)) & (known > 0.5)
+                counts = active.sum(1)
+                longest = max(1, int(counts.max()))
+                rows, columns = active.nonzero(as_tuple=True)  # row-major: each row's pixels in order
+                starts = torch.cumsum(counts, 0) - counts
+                pick = torch.zeros(n_run, longest, dtype=torch.long)
+                pick[rows, torch.arange(len(rows)) - starts[rows]] = columns
+                valid = (torch.arange(longest)[None] < counts[:, None]).to(blurred.dtype)
+                flow = _screen_flow(some, delta[run], points[run].gather(1, pick[..., None].expand(-1, -1, 3)), size,
+                                    size)  # (6, B, N, 2)
+                jacobian = -(gradient_x.gather(1, pick)[None] * flow[..., 0]
+                             + gradient_y.gather(1, pick)[None] * flow[..., 1]).permute(1, 2, 0)  # (B, N, 6)
+                jacobian = jacobian * valid[..., None]
+                residual = ((blurred[run].reshape(n_run, -1) - blurred_target) * known).gather(1, pick)
+                normal_all[run] = jacobian.transpose(1, 2) @ jacobian
+                rhs_all[run] = (jacobian.transpose(1, 2) @ residual[..., None])[..., 0]
+                for camera in renew:
+                    stale[camera] = False
             run = torch.tensor(running)
             some = start if len(running) == n_batch else start[running]
-            n_run = len(running)
-            gradient_y, gradient_x = torch.gradient(blurred[run, 0], dim=(1, 2))
-            gradient_x, gradient_y = gradient_x.reshape(n_run, -1), gradient_y.reshape(n_run, -1)
-            # Only pixels where the blurred silhouette varies have a Jacobian row (elsewhere the image
-            # gradient is exactly zero): the screen flow is taken at those alone, per camera, padded
-            # to the longest list with rows of zero weight.
-            active = ((gradient_x != 0) | (gradient_y != 0)) & (known > 0.5)
-            counts = active.sum(1)
-            longest = max(1, int(counts.max()))
-            rows, columns = active.nonzero(as_tuple=True)  # row-major: each row's pixels in order
-            starts = torch.cumsum(counts, 0) - counts
-            pick = torch.zeros(n_run, longest, dtype=torch.long)
-            pick[rows, torch.arange(len(rows)) - starts[rows]] = columns
-            valid = (torch.arange(longest)[None] < counts[:, None]).to(blurred.dtype)
-            flow = _screen_flow(some, delta[run], points[run].gather(1, pick[..., None].expand(-1, -1, 3)), size,
-                                size)  # (6, B, N, 2)
-            jacobian = -(gradient_x.gather(1, pick)[None] * flow[..., 0]
-                         + gradient_y.gather(1, pick)[None] * flow[..., 1]).permute(1, 2, 0)  # (B, N, 6)
-            jacobian = jacobian * valid[..., None]
-            residual = ((blurred[run].reshape(n_run, -1) - blurred_target) * known).gather(1, pick)
-            normal = jacobian.transpose(1, 2) @ jacobian
+            normal = normal_all[run]
             scale = normal.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-12)
             damped = damping[run]
-            update = -torch.linalg.solve(normal + (damped * scale)[:, None, None] * torch.eye(6),
-                                         (jacobian.transpose(1, 2) @ residual[..., None])[..., 0])
+            update = -torch.linalg.solve(normal + (damped * scale)[:, None, None] * torch.eye(6), rhs_all[run])
             trial_blurred, trial_points, trial_cost = evaluate(some, delta[run] + update)
             better = trial_cost < cost[run]
             delta[run] = torch.where(better[:, None], delta[run] + update, delta[run])
@@ -461,9 +481,11 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
             points[run] = torch.where(better[:, None, None], trial_points, points[run])
             cost[run] = torch.where(better, trial_cost, cost[run])
             damping[run] = torch.where(better, damping[run] * 0.3, damping[run] * 10).clamp(1e-6, 1e6)
-            # Done: a step under 0.01 px that is short because the minimum is near, not because damping
+            for camera, moved in zip(running, better.tolist()):
+                stale[camera] = stale[camera] or moved
+            # Done: a step under `done_step` that is short because the minimum is near, not because damping
             # (raised by rejected steps) shortened it: a damped camera may yet get going again.
-            done = (update.abs().amax(1) < 0.01) & (damped <= FREEZE_DAMPING)
+            done = (update.abs().amax(1) < done_step) & (damped <= FREEZE_DAMPING)
             running = [camera for camera, stop in zip(running, done.tolist()) if not stop]
             if not running:
                 break
@@ -691,7 +713,8 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
     the pose error, but it has fewer and less varied pixels, and it loses on some meshes that the
     all-pixel fit reads. Keeping the start guards against runs that drift off a good pose. The second
     run is skipped where the first plainly converged: there it would change nothing and only cost time.
-    Where the best still fits the texture poorly (ZOOM_TRY), a run that also refines the field of view
+    Where the best still fits the texture poorly (ZOOM_TRY) and one Gauss-Newton step that also moves
+    the field of view moves it by ZOOM_PROBE_DEGREES or more, a run that also refines the field of view
     (`refine_on_texture`'s `zoom`) goes on from it: a crop, or a picture made through another lens,
     is registered a pixel or so off without it, and that costs a luminance mark its reading."""
     picture, mask = _working_size(picture, mask)
@@ -705,9 +728,13 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
     best = min(range(len(results)), key=misfits.__getitem__)
     if misfits[best] < ZOOM_TRY:
         return results[best]
-    # The field of view too, from the best, where the texture still fits poorly: kept only where it
-    # explains the texture clearly better (on a picture with the assumed field of view the weakly
+    # The field of view too, from the best, where the texture still fits poorly and one step with the
+    # zoom asks for another field of view (a full zoomed run costs several plain ones): kept only where
+    # it explains the texture clearly better (on a picture with the assumed field of view the weakly
     # determined zoom only adds noise).
+    probe = _texture_level(mesh, results[best], picture, mask, ZOOM_PROBE_SIGMA, 1, 3, lights[best] or "all", True)
+    if abs(probe.fov_y - results[best].fov_y) < ZOOM_PROBE_DEGREES:
+        return results[best]
     zoomed = refine_on_texture(mesh, results[best], picture, mask, light_from=lights[best] or "all", zoom=True)
     return zoomed if texture_misfit(mesh, zoomed, picture, mask) < ZOOM_GAIN * misfits[best] else results[best]
 
@@ -871,7 +898,7 @@ def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_ang
 def _coarse_silhouettes(mesh: MeshBatch, cameras: Cameras, levels) -> Cameras:
     """Cameras refined coarsely on their silhouettes (COARSE_SILHOUETTE_SIGMAS at COMPARE_SIZE, one batch)."""
     for sigma in COARSE_SILHOUETTE_SIGMAS:
-        cameras = _refine_silhouettes(mesh, cameras, levels[COMPARE_SIZE], sigma)
+        cameras = _refine_silhouettes(mesh, cameras, levels[COMPARE_SIZE], sigma, done_step=SILHOUETTE_COARSE_DONE)
     return cameras
 
 

@@ -178,6 +178,15 @@ def visible_faces(clip: torch.Tensor, faces: torch.Tensor, height: int, width: i
     return _visible(clip, faces, height, width, near, None)[0]
 
 
+def visible_faces_and_depth(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int,
+                            near: float = 1e-5) -> tuple[torch.Tensor, torch.Tensor]:
+    """`visible_faces` (B, H, W) and the normalised device depth z / w (B, H, W, float64; inf on the
+    background) the z-buffer kept at each pixel centre: exact there, since z / w is affine on the
+    screen, so a pixel's surface point is its ray at that depth, without interpolating fragments."""
+    faces_out, _, depth = _visible(clip, faces, height, width, near, None, True)
+    return faces_out, depth
+
+
 def visible_faces_within(clip: torch.Tensor, faces: torch.Tensor, height: int, width: int, near: float = 1e-5,
                          align: int = 1) -> tuple[torch.Tensor, tuple[int, int]]:
     """`visible_faces` over the window of the (B, H, W) raster that the vertices in front of the camera
@@ -195,7 +204,7 @@ def whole_raster(window: torch.Tensor, corner: tuple[int, int], height: int, wid
     return whole
 
 
-def _visible(clip, faces, height, width, near, align):
+def _visible(clip, faces, height, width, near, align, with_depth=False):
     with torch.no_grad():
         clip64 = clip.detach().to("cpu", torch.float64)
         xy = clip_to_screen(clip64, height, width).numpy()
@@ -221,6 +230,8 @@ def _visible(clip, faces, height, width, near, align):
         if face_out.size:
             _zbuffer(np.ascontiguousarray(xy), np.ascontiguousarray(z), np.ascontiguousarray(w),
                      np.ascontiguousarray(face_array), near, face_out, depth, top, left, height, width)
+    if with_depth:
+        return torch.from_numpy(face_out).to(clip.device), (top, left), torch.from_numpy(depth).to(clip.device)
     return torch.from_numpy(face_out).to(clip.device), (top, left)
 
 
