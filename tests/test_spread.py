@@ -2,6 +2,7 @@
 known, and no mark found where there is none."""
 
 import json
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -536,7 +537,7 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
-    from meshseal.reading.registration import Alternative
+    from meshseal.reading.registration import Alternative, pose_error
 
     model, message, original, marked = _original_and_marked_batches()
     marked.textures = [model.texture_encoder(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
@@ -559,7 +560,8 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     decision = watermarker.decide([again])
     assert not plain.detected and decision.detected and again.tries == 6 and not again.second_look
     assert ((torch.tensor([int(b) for b in decision.bits]) == message[0]).float().mean()) >= 0.95
-    assert torch.allclose(again.found.eye, cameras.eye)
+    # the alternative finished is polished (`registration.polish`): the true view stays within hundredths of a pixel
+    assert pose_error(original, cameras, again.found, 256, 256) < 0.02
     single = watermarker.decide([replace(again, tries=1)])
     assert decision.p_value == pytest.approx(min(1.0, 6 * single.p_value), rel=1e-9)
     # Found at the registered camera: x3 (three stages paid for), nothing else read.
@@ -603,6 +605,55 @@ def test_a_camera_a_fraction_of_a_pixel_off_is_sharpened_on_the_reading_residual
     assert ((torch.tensor([int(b) for b in decision.bits]) == message[0]).float().mean()) >= 0.95
 
 
+def test_a_registered_camera_is_polished_onto_the_picture_and_a_long_move_is_refused(monkeypatch):
+    """After JPEG the texture stage leaves a camera a tenth of a pixel or so off, and a luminance mark's
+    reading loses much of its evidence to that. `polish` (Gauss-Newton on central differences of
+    full renders, high-passed) brings a camera 0.1 px off the bunny's JPEG 75 picture to within a few
+    hundredths of a pixel and leaves the true camera within two; on a texture that aliases (a 512^2
+    noise texture at 256^2, PNG) the reading's p-value at the polished camera is that of the true
+    one's order, far under the camera's it started from. A move longer than POLISH_MAX is not taken."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    import meshseal.reading.registration as registration
+    from meshseal import payload
+    from meshseal.api import Watermarker
+    from meshseal.reading.registration import _moved, polish, pose_error
+
+    model, message, original, marked = _original_and_marked_batches()
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    off = _moved(cameras, torch.tensor([0.15, -0.1, 0.0, 0.05, 0.1, 0.0]), 256)
+    assert pose_error(original, cameras, off, 256, 256) > 0.09
+    with torch.no_grad():
+        clean = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+    mask = (clean[0].sum(0) > 0).float()[None]
+    buffer = io.BytesIO()
+    Image.fromarray((clean[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(buffer, "JPEG", quality=75)
+    jpeg = torch.from_numpy(np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB")).astype(np.float32) / 255)
+    jpeg = jpeg.permute(2, 0, 1)[None]
+    assert pose_error(original, cameras, polish(original, off, jpeg, mask), 256, 256) < 0.04
+    assert pose_error(original, cameras, polish(original, cameras, jpeg, mask), 256, 256) < 0.02
+
+    noise = torch.rand(3, 512, 512, generator=torch.Generator().manual_seed(0))
+    original.textures = [noise]
+    marked.textures = [model.texture_encoder(noise[None], message, 1.0, payload.key_seed(None))[0]]
+    with torch.no_grad():
+        picture = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+    watermarker = Watermarker(model)
+    pixels = picture[0].permute(1, 2, 0).numpy()
+
+    def log_p(camera) -> float:
+        return math.log10(watermarker.decide([watermarker.read(pixels, original, camera=camera)]).p_value)
+
+    polished = polish(original, off, picture, mask)
+    assert pose_error(original, cameras, polished, 256, 256) < 0.01
+    assert log_p(polished) < 0.9 * log_p(cameras) and log_p(polished) < 10 * log_p(off)
+    monkeypatch.setattr(registration, "POLISH_MAX", 0.01)
+    assert polish(original, off, picture, mask) is off
+
+
 def test_a_second_look_sharpens_only_a_reading_that_hints_at_a_mark(monkeypatch):
     """Sharpening costs a second look its renders: the unmarked bunny's registered reading (no hint, p
     above SHARPEN_BELOW) is not sharpened; with the bar at 1 it is, and the p-value pays the same x2R
@@ -638,7 +689,7 @@ def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_
     import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
-    from meshseal.reading.registration import Alternative
+    from meshseal.reading.registration import Alternative, pose_error
 
     model, message, original, marked = _original_and_marked_batches()
     marked.textures = [model.texture_encoder(original.textures[0][None], message, 1.0, payload.key_seed(None))[0]]
@@ -660,7 +711,7 @@ def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_
     assert watermarker.decide([replace(first, second_look=())]).p_value > api.LOOK_AGAIN_BELOW  # no hint
     again = watermarker.look_again(first, original)
     decision = watermarker.decide([again])
-    assert decision.detected and again.tries == 6 and torch.allclose(again.found.eye, cameras.eye)
+    assert decision.detected and again.tries == 6 and pose_error(original, cameras, again.found, 256, 256) < 0.02  # polished
     assert len(finished) == 1 and finished[0] is cameras  # the view showing nothing was not finished
 
 

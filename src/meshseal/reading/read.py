@@ -118,7 +118,7 @@ class Reader:
         if original is None:
             box = tuple(float(v) for v in boxes_from_mask(torch.from_numpy(mask)[None])[0])
             return Reading(self.method.blind_evidence(pixels, mask, background_tensor), box, None, None)
-        from .registration import register_with_masks
+        from .registration import polish, register_with_masks
 
         guesses, recut = self._object_guesses(pixels, mask, alpha, original)
         factor = registration_factor(mask)
@@ -126,7 +126,9 @@ class Reader:
         with torch.enable_grad():
             found = register_with_masks(self.on_cpu(original), picture, guesses, background_tensor.cpu(),
                                         fov_y=fov_y, recut=recut)
-        camera = found.camera.to(self.device)  # a camera is the same for the picture at any size
+        # a camera is the same for the picture at any size: its last hundredths of a pixel at the picture's own
+        camera = polish(self.on_cpu(original), found.camera, tensor.cpu().clamp(0, 1),
+                        torch.from_numpy(np.ascontiguousarray(mask))[None].float()).to(self.device)
         # one tensor for this reading and the second look: the codec found once
         seen = self._expect_codecs(tensor.clamp(0, 1), codecs, luma)
         evidence = self.method.evidence(original, seen, camera)

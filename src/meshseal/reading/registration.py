@@ -9,7 +9,8 @@ finished on the texture (its field of view too, where the assumed one leaves the
 poorly: a crop, another lens); where the texture then still fits poorly, more candidate views, nearer
 each other, get the same treatment. Every refinement is Gauss-Newton on a rigid move whose Jacobian is an
 image gradient times the move's analytic screen flow (Lucas-Kanade style: one render per iteration, no
-backward pass).
+backward pass), but the last: `polish` brings the camera its last hundredths of a pixel on the picture's
+own pixels, with a Jacobian of rendered differences.
 """
 
 from __future__ import annotations
@@ -72,6 +73,12 @@ ZOOM_AGAIN = 0.5  # ... another one while the last changed the field of view by 
 SHARPEN_STEPS = (0.2, 0.025)  # pixels: `sharpen`'s first and last step
 SHARPEN_RENDERS = 150  # ... and at most this many renders
 SHARPEN_WINDOW = 256  # ... of at most this many pixels a side around the object's centre
+POLISH_STEP = 0.1  # pixels: `polish`'s central differences
+POLISH_ROUNDS = 2  # ... its rounds, each with the light refitted and the Jacobian taken afresh ...
+POLISH_ITERATIONS = 6  # ... its Gauss-Newton steps a round at most ...
+POLISH_WINDOW = 512  # ... on at most this many pixels a side around the object's centre ...
+POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels (0: as they are) ...
+POLISH_MAX = 0.5  # ... and a move of more than this many pixels (mean screen distance) not taken
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -608,25 +615,26 @@ def _interior(covered: torch.Tensor, mask: torch.Tensor, margin: int) -> torch.T
     return grown[:, 0] < 0.5
 
 
-def _band_pass(inside: torch.Tensor, sigma: float):
+def _band_pass(inside: torch.Tensor, sigma: float, wide: float | None = None):
     """A function band-passing pictures (B, 3, H, W) around `sigma` over the `inside` (1, H, W) pixels
     only (normalised blurs, so the silhouette's edge leaks nothing in). The blurs run on the box around
     the inside pixels that the wider one reaches (the rest of the frame, zero, is the same as the whole
     frame would give there), and the blurred weights once."""
     from ..imaging import blur_radius, gaussian_blur
 
-    wide = LOWPASS * max(sigma, 1.0)
+    wide = LOWPASS * max(sigma, 1.0) if wide is None else wide
     reach = blur_radius(wide)
     rows, columns = inside[0].any(dim=1).nonzero()[:, 0], inside[0].any(dim=0).nonzero()[:, 0]
     top, left = max(0, int(rows[0]) - reach), max(0, int(columns[0]) - reach)
     box = (slice(top, int(rows[-1]) + 1 + reach), slice(left, int(columns[-1]) + 1 + reach))
     weight = inside[:, None, box[0], box[1]].float()
-    norms = [gaussian_blur(weight, s).clamp_min(1e-3) for s in (sigma, wide)]
+    narrow = (lambda x: x) if sigma <= 0 else (lambda x: gaussian_blur(x, sigma))  # noqa: E731
+    norms = [narrow(weight).clamp_min(1e-3), gaussian_blur(weight, wide).clamp_min(1e-3)]
 
     def band(x: torch.Tensor) -> torch.Tensor:
         part = x[..., box[0], box[1]] * weight
         out = x.new_zeros(x.shape)
-        out[..., box[0], box[1]] = gaussian_blur(part, sigma) / norms[0] - gaussian_blur(part, wide) / norms[1]
+        out[..., box[0], box[1]] = narrow(part) / norms[0] - gaussian_blur(part, wide) / norms[1]
         return out
 
     return band
@@ -739,6 +747,50 @@ def refine_on_texture_twice(mesh: MeshBatch, camera: Cameras, picture: torch.Ten
     return zoomed if texture_misfit(mesh, zoomed, picture, mask) < ZOOM_GAIN * misfits[best] else results[best]
 
 
+@dataclass
+class _Window:
+    """The object's square window of a picture, its edges on pixel edges so that its pixels are the
+    picture's: a camera rendering just it (`camera`, `side` pixels a side), the interior pixels in it
+    (`seen`, side x side) and the picture's values there (`target`, (M, 3))."""
+
+    camera: Cameras
+    side: int
+    seen: torch.Tensor
+    target: torch.Tensor
+    image: torch.Tensor  # the picture's window (3, side, side)
+
+
+def _object_window(camera: Cameras, picture: torch.Tensor, inside: torch.Tensor, largest: int) -> _Window:
+    """`_Window` of the `inside` pixels (1, H, W) of `picture` (1, 3, H, W) seen from `camera`: their
+    square box and two pixels, at most `largest` pixels a side (in a large picture, the part around the
+    object's centre, so that the cost stays bounded)."""
+    height, width = picture.shape[-2:]
+    rows, columns = inside[0].any(1).nonzero()[:, 0], inside[0].any(0).nonzero()[:, 0]
+    top, bottom = int(rows[0]) - 2, int(rows[-1]) + 3
+    left, right = int(columns[0]) - 2, int(columns[-1]) + 3
+    side = max(bottom - top, right - left)
+    top, left = (top + bottom - side) // 2, (left + right - side) // 2
+    if side > largest:
+        centre_row, centre_column = inside[0].nonzero().float().mean(0).round().long().tolist()
+        top = min(max(centre_row - largest // 2, top), top + side - largest)
+        left = min(max(centre_column - largest // 2, left), left + side - largest)
+        side = largest
+    fov, principal = crop_intrinsics(height, width, (left + side / 2, top + side / 2, side / 2), camera.fov_y)
+    # The window may reach past the picture's edges: pad, then cut it out.
+    pad_left, pad_top = max(0, -left), max(0, -top)
+    cut = lambda x: F.pad(x, (pad_left, max(0, left + side - width), pad_top, max(0, top + side - height)))[  # noqa: E731
+        0, :, top + pad_top:top + pad_top + side, left + pad_left:left + pad_left + side]
+    seen, image = cut(inside[:, None].float())[0] > 0.5, cut(picture)
+    return _Window(replace(camera, fov_y=fov, principal=principal), side, seen, image.permute(1, 2, 0)[seen], image)
+
+
+def _from_window(window: _Window, delta: torch.Tensor, camera: Cameras) -> Cameras:
+    """The picture's camera after the move `delta` of `_moved` made in `window`'s frame: `_moved`'s turn
+    about the view axis and move along it are in pixels at the window's edge, the window's own camera
+    carries them back, then the picture's intrinsics."""
+    return replace(_moved(window.camera, delta, window.side), fov_y=camera.fov_y, principal=camera.principal)
+
+
 def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
     """`camera` moved to where the relit original, rendered as the reading renders it (antialiased and
     unfiltered, the light fitted once at `camera`), best explains the picture (1, 3, H, W) over its
@@ -752,37 +804,19 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
     most SHARPEN_RENDERS renders of the object's own window (at most SHARPEN_WINDOW pixels a side: in
     a large picture, the part around the object's centre). Where it moves the camera to a worse
     view, only the reading can tell: `reading.second_look` reads both."""
-    height, width = picture.shape[-2:]
     with torch.no_grad():
         view = _relit_view(mesh, camera, picture, mask, margin=2)
         if view is None:
             return camera
         fit, inside = view
-        # The object's square window, its edges on pixel edges so that its pixels are the picture's.
-        rows, columns = inside[0].any(1).nonzero()[:, 0], inside[0].any(0).nonzero()[:, 0]
-        top, bottom = int(rows[0]) - 2, int(rows[-1]) + 3
-        left, right = int(columns[0]) - 2, int(columns[-1]) + 3
-        side = max(bottom - top, right - left)
-        top, left = (top + bottom - side) // 2, (left + right - side) // 2
-        if side > SHARPEN_WINDOW:  # a large picture: its central part, so that the cost stays bounded
-            centre_row, centre_column = inside[0].nonzero().float().mean(0).round().long().tolist()
-            top = min(max(centre_row - SHARPEN_WINDOW // 2, top), top + side - SHARPEN_WINDOW)
-            left = min(max(centre_column - SHARPEN_WINDOW // 2, left), left + side - SHARPEN_WINDOW)
-            side = SHARPEN_WINDOW
-        fov, principal = crop_intrinsics(height, width, (left + side / 2, top + side / 2, side / 2), camera.fov_y)
-        window = replace(camera, fov_y=fov, principal=principal)
-        # The window may reach past the picture's edges: pad, then cut it out.
-        pad_left, pad_top = max(0, -left), max(0, -top)
-        cut = lambda x: F.pad(x, (pad_left, max(0, left + side - width), pad_top, max(0, top + side - height)))[  # noqa: E731
-            0, :, top + pad_top:top + pad_top + side, left + pad_left:left + pad_left + side]
-        seen = cut(inside[:, None].float())[0] > 0.5
-        target = cut(picture).permute(1, 2, 0)[seen]
+        window = _object_window(camera, picture, inside, SHARPEN_WINDOW)
         renderer = MeshRenderer()
 
         def costs(deltas: torch.Tensor) -> torch.Tensor:
             lights = fit.lights[[0] * len(deltas)]  # the one fitted light for every trial camera
-            rendered = renderer(fit.relit, _moved(window, deltas, side), lights, side, side).image
-            return ((rendered.permute(0, 2, 3, 1)[:, seen] - target) ** 2).sum((1, 2))
+            rendered = renderer(fit.relit, _moved(window.camera, deltas, window.side), lights, window.side,
+                                window.side).image
+            return ((rendered.permute(0, 2, 3, 1)[:, window.seen] - window.target) ** 2).sum((1, 2))
 
         centre = torch.zeros(6, dtype=picture.dtype)
         best, step, renders = float(costs(centre[None])[0]), SHARPEN_STEPS[0], 1
@@ -796,9 +830,71 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
                 best, centre = float(trial_costs[pick]), trials[pick]
             else:
                 step /= 2
-        # `_moved`'s turn about the view axis and move along it are in pixels at the window's edge: the
-        # window's own camera carries them back, then the picture's intrinsics.
-        return replace(_moved(window, centre, side), fov_y=camera.fov_y, principal=camera.principal)
+        return _from_window(window, centre, camera)
+
+
+def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
+    """The registered `camera` of `picture` (1, 3, H, W), object pixels `mask` (1, H, W), brought the last
+    hundredths of a pixel to where the relit original, rendered as the reading renders it (antialiased,
+    unblurred, at the picture's own size), best explains the picture over its interior pixels, both
+    high-passed at POLISH_HIGHPASS pixels (what the relit original's shading misfits there would
+    otherwise pull the pose to mend).
+
+    The texture stage aligns band-passed pictures on image gradients: after JPEG or WebP, whose error
+    lies on the same edges, it ends a tenth of a pixel or so off, and a luminance mark's reading loses
+    half its evidence to that (docs/reading.md, stage 4). Here the Jacobian is central differences of
+    renders of the object's window (POLISH_STEP pixels each way, twelve renders in one batch), taken
+    once per round and kept for its Gauss-Newton steps (the pose moves by hundredths of a pixel, the
+    Jacobian hardly changes), each step halved twice before the round ends; the light is refitted
+    at the start of each of POLISH_ROUNDS rounds. A least-squares step only ever lowers the cost, and
+    a move of more than POLISH_MAX pixels is not taken (a picture the original explains poorly, from
+    another engine, can pull the pose where the texture stage and the silhouette did not put it).
+    Nothing here looks at a key: the reading's p-values stay as they are."""
+    with torch.no_grad():
+        start = camera
+        renderer = MeshRenderer()
+        for _ in range(POLISH_ROUNDS):
+            view = _relit_view(mesh, camera, picture, mask, margin=2)
+            if view is None:
+                return start
+            fit, inside = view
+            window = _object_window(camera, picture, inside, POLISH_WINDOW)
+            band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(window.seen[None], 0.0, POLISH_HIGHPASS)
+            target = band(window.image[None])[0].permute(1, 2, 0)[window.seen].reshape(-1).double()
+
+            def rendered(deltas: torch.Tensor) -> torch.Tensor:
+                lights = fit.lights[[0] * len(deltas)]
+                image = renderer(fit.relit, _moved(window.camera, deltas.to(picture.dtype), window.side), lights,
+                                 window.side, window.side).image
+                return band(image).permute(0, 2, 3, 1)[:, window.seen].reshape(len(deltas), -1).double()
+
+            moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
+            both = rendered(moves)
+            jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
+            normal = jacobian.T @ jacobian
+            scale = float(normal.diagonal().mean())
+            if not scale > 1e-12:  # nothing to align on
+                return start
+            solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
+            delta = torch.zeros(6, dtype=torch.float64)
+            residual = target - rendered(delta[None])[0]
+            cost = float((residual ** 2).sum())
+            for _ in range(POLISH_ITERATIONS):
+                update = torch.linalg.solve(solve, jacobian.T @ residual)
+                length = float(update.abs().max())
+                for fraction in (1.0, 0.5, 0.25):
+                    trial = target - rendered((delta + fraction * update)[None])[0]
+                    if float((trial ** 2).sum()) < cost:
+                        break
+                else:
+                    break
+                delta, residual = delta + fraction * update, trial
+                cost = float((residual ** 2).sum())
+                if fraction * length < TEXTURE_DONE:
+                    break
+            camera = _from_window(window, delta.to(picture.dtype), camera)
+        height, width = picture.shape[-2:]
+        return camera if pose_error(mesh, start, camera, height, width) <= POLISH_MAX else start
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,

@@ -36,7 +36,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     to finish). Other readings, and all of them with `search` False (pooling), come back as they
     are, without what a second look needs."""
     from .. import payload
-    from .registration import sharpen, silhouette_iou
+    from .registration import polish, sharpen, silhouette_iou
 
     if not reading.second_look:
         return reading
@@ -74,7 +74,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
             rough = replace(first, evidence=method.evidence(original, on_device, alternative.rough().to(reader.device)))
             if method.decide([rough], key, expect).p_value > LOOK_AGAIN_BELOW:
                 continue
-        other, p_value = under(alternative.finish(), stages * len(alternatives))
+        other, p_value = under(polish(on_cpu, alternative.finish(), picture, mask[None].float()), stages * len(alternatives))
         if p_value < best_p:
             best, best_p = other, p_value
     # Only the kept camera's silhouette overlap is reported: the others are never rendered for it.
