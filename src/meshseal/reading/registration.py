@@ -76,7 +76,7 @@ SHARPEN_WINDOW = 256  # ... of at most this many pixels a side around the object
 POLISH_STEP = 0.1  # pixels: `polish`'s central differences
 POLISH_ROUNDS = 2  # ... its rounds, each with the light refitted and the Jacobian taken afresh ...
 POLISH_ITERATIONS = 6  # ... its Gauss-Newton steps a round at most ...
-POLISH_WINDOW = 512  # ... on at most this many pixels a side around the object's centre ...
+POLISH_WINDOW = 256  # ... on at most this many pixels a side around the object's centre (a large picture: its central part) ...
 POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels (0: as they are) ...
 POLISH_MAX = 0.5  # ... and a move of more than this many pixels (mean screen distance) not taken
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
@@ -851,22 +851,26 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
     another engine, can pull the pose where the texture stage and the silhouette did not put it).
     Nothing here looks at a key: the reading's p-values stay as they are."""
     with torch.no_grad():
-        start = camera
-        renderer = MeshRenderer()
+        start, renderer, seen_object = camera, MeshRenderer(), mask > 0.5
+        # Everything runs on the object's window (the picture's own pixels, at most POLISH_WINDOW a side),
+        # whatever the picture's size: the window is the object's box, the same for every camera.
+        first = _object_window(camera, picture, seen_object, POLISH_WINDOW)
+        crop, side = first.image[None], first.side
+        crop_mask = first.seen[None].to(picture.dtype)
         for _ in range(POLISH_ROUNDS):
-            view = _relit_view(mesh, camera, picture, mask, margin=2)
+            window = _object_window(camera, picture, seen_object, POLISH_WINDOW)  # this camera's intrinsics
+            view = _relit_view(mesh, window.camera, crop, crop_mask, margin=2)
             if view is None:
                 return start
             fit, inside = view
-            window = _object_window(camera, picture, inside, POLISH_WINDOW)
-            band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(window.seen[None], 0.0, POLISH_HIGHPASS)
-            target = band(window.image[None])[0].permute(1, 2, 0)[window.seen].reshape(-1).double()
+            band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(inside, 0.0, POLISH_HIGHPASS)
+            target = band(crop)[0].permute(1, 2, 0)[inside[0]].reshape(-1).double()
 
             def rendered(deltas: torch.Tensor) -> torch.Tensor:
                 lights = fit.lights[[0] * len(deltas)]
-                image = renderer(fit.relit, _moved(window.camera, deltas.to(picture.dtype), window.side), lights,
-                                 window.side, window.side).image
-                return band(image).permute(0, 2, 3, 1)[:, window.seen].reshape(len(deltas), -1).double()
+                image = renderer(fit.relit, _moved(window.camera, deltas.to(picture.dtype), side), lights,
+                                 side, side).image
+                return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(deltas), -1).double()
 
             moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
             both = rendered(moves)
@@ -893,8 +897,8 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 if fraction * length < TEXTURE_DONE:
                     break
             camera = _from_window(window, delta.to(picture.dtype), camera)
-        height, width = picture.shape[-2:]
-        return camera if pose_error(mesh, start, camera, height, width) <= POLISH_MAX else start
+        last = _object_window(camera, picture, seen_object, POLISH_WINDOW)
+        return camera if pose_error(mesh, first.camera, last.camera, side, side) <= POLISH_MAX else start
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
