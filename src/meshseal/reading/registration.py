@@ -75,6 +75,7 @@ SHARPEN_RENDERS = 150  # ... and at most this many renders
 SHARPEN_WINDOW = 256  # ... of at most this many pixels a side around the object's centre
 POLISH_STEP = 0.1  # pixels: `polish`'s central differences
 POLISH_ROUNDS = 2  # ... its rounds, each with the light refitted and the Jacobian taken afresh ...
+POLISH_AGAIN = 0.02  # ... the next round only where the last moved the camera by this many pixels or more ...
 POLISH_ITERATIONS = 6  # ... its Gauss-Newton steps a round at most ...
 POLISH_WINDOW = 256  # ... on at most this many pixels a side around the object's centre (a large picture: its central part) ...
 POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels (0: as they are) ...
@@ -846,7 +847,8 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
     renders of the object's window (POLISH_STEP pixels each way, twelve renders in one batch), taken
     once per round and kept for its Gauss-Newton steps (the pose moves by hundredths of a pixel, the
     Jacobian hardly changes), each step halved twice before the round ends; the light is refitted
-    at the start of each of POLISH_ROUNDS rounds. A least-squares step only ever lowers the cost, and
+    at the start of each of POLISH_ROUNDS rounds, a round made only where the last one moved the
+    camera by POLISH_AGAIN pixels or more. A least-squares step only ever lowers the cost, and
     a move of more than POLISH_MAX pixels is not taken (a picture the original explains poorly, from
     another engine, can pull the pose where the texture stage and the silhouette did not put it).
     Nothing here looks at a key: the reading's p-values stay as they are."""
@@ -897,6 +899,8 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 if fraction * length < TEXTURE_DONE:
                     break
             camera = _from_window(window, delta.to(picture.dtype), camera)
+            if float(delta.abs().max()) < POLISH_AGAIN:  # the light refitted at a camera this near would change nothing
+                break
         last = _object_window(camera, picture, seen_object, POLISH_WINDOW)
         return camera if pose_error(mesh, first.camera, last.camera, side, side) <= POLISH_MAX else start
 
