@@ -759,6 +759,14 @@ class _Window:
     seen: torch.Tensor
     target: torch.Tensor
     image: torch.Tensor  # the picture's window (3, side, side)
+    box: tuple  # (cx, cy, half) in the picture's pixels, and the picture's (height, width)
+    size: tuple
+
+    def seen_from(self, camera: Cameras) -> Cameras:
+        """Another camera of the same picture, rendering just this window (the window is the object's
+        box, the same whatever the camera)."""
+        fov, principal = crop_intrinsics(*self.size, self.box, camera.fov_y)
+        return replace(camera, fov_y=fov, principal=principal)
 
 
 def _object_window(camera: Cameras, picture: torch.Tensor, inside: torch.Tensor, largest: int) -> _Window:
@@ -776,13 +784,14 @@ def _object_window(camera: Cameras, picture: torch.Tensor, inside: torch.Tensor,
         top = min(max(centre_row - largest // 2, top), top + side - largest)
         left = min(max(centre_column - largest // 2, left), left + side - largest)
         side = largest
-    fov, principal = crop_intrinsics(height, width, (left + side / 2, top + side / 2, side / 2), camera.fov_y)
+    box = (left + side / 2, top + side / 2, side / 2)
     # The window may reach past the picture's edges: pad, then cut it out.
     pad_left, pad_top = max(0, -left), max(0, -top)
     cut = lambda x: F.pad(x, (pad_left, max(0, left + side - width), pad_top, max(0, top + side - height)))[  # noqa: E731
         0, :, top + pad_top:top + pad_top + side, left + pad_left:left + pad_left + side]
     seen, image = cut(inside[:, None].float())[0] > 0.5, cut(picture)
-    return _Window(replace(camera, fov_y=fov, principal=principal), side, seen, image.permute(1, 2, 0)[seen], image)
+    window = _Window(camera, side, seen, image.permute(1, 2, 0)[seen], image, box, (height, width))
+    return replace(window, camera=window.seen_from(camera))
 
 
 def _from_window(window: _Window, delta: torch.Tensor, camera: Cameras) -> Cameras:
@@ -853,14 +862,14 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
     another engine, can pull the pose where the texture stage and the silhouette did not put it).
     Nothing here looks at a key: the reading's p-values stay as they are."""
     with torch.no_grad():
-        start, renderer, seen_object = camera, MeshRenderer(), mask > 0.5
+        start, renderer = camera, MeshRenderer()
         # Everything runs on the object's window (the picture's own pixels, at most POLISH_WINDOW a side),
         # whatever the picture's size: the window is the object's box, the same for every camera.
-        first = _object_window(camera, picture, seen_object, POLISH_WINDOW)
+        first = _object_window(camera, picture, mask > 0.5, POLISH_WINDOW)
         crop, side = first.image[None], first.side
         crop_mask = first.seen[None].to(picture.dtype)
         for _ in range(POLISH_ROUNDS):
-            window = _object_window(camera, picture, seen_object, POLISH_WINDOW)  # this camera's intrinsics
+            window = replace(first, camera=first.seen_from(camera))
             view = _relit_view(mesh, window.camera, crop, crop_mask, margin=2)
             if view is None:
                 return start
@@ -901,8 +910,7 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
             camera = _from_window(window, delta.to(picture.dtype), camera)
             if float(delta.abs().max()) < POLISH_AGAIN:  # the light refitted at a camera this near would change nothing
                 break
-        last = _object_window(camera, picture, seen_object, POLISH_WINDOW)
-        return camera if pose_error(mesh, first.camera, last.camera, side, side) <= POLISH_MAX else start
+        return camera if pose_error(mesh, first.camera, first.seen_from(camera), side, side) <= POLISH_MAX else start
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
