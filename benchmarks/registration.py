@@ -34,6 +34,7 @@ pose error; then the pictures whose bits differ between the codes. `uptime` at s
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 import subprocess
@@ -128,7 +129,8 @@ def prepare(work: Path, data: Path, meshes: int, fixture_views: int) -> list[dic
 
 def child(data: Path, settings: list[str]) -> None:
     """Reads picture items (JSON lines on stdin), answers one JSON line each on stdout. `settings`:
-    MODULE.NAME=VALUE (e.g. meshseal.reading.registration.FLAT_ENOUGH=0), set after import."""
+    MODULE.NAME=VALUE (e.g. meshseal.reading.registration.FLAT_ENOUGH=0, or a tuple:
+    ...TEXTURE_SIGMAS=4,2,1), set after import."""
     try:
         from meshseal.threads import configure
 
@@ -149,7 +151,9 @@ def child(data: Path, settings: list[str]) -> None:
         name, value = setting.split("=", 1)
         module, attribute = name.rsplit(".", 1)
         target = importlib.import_module(module)
-        setattr(target, attribute, type(getattr(target, attribute))(float(value)))
+        current = getattr(target, attribute)
+        given = ast.literal_eval(value)
+        setattr(target, attribute, tuple(float(v) for v in given) if isinstance(current, tuple) else type(current)(given))
     from meshseal.reading import registration
 
     spent = [0.0]  # seconds inside registration (`register_with_masks`) for the picture being read

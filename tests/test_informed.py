@@ -167,6 +167,7 @@ def test_registration_of_an_object_the_frame_cuts_off():
     assert pose_error(mesh, cut, found.camera, 160, 160) < 1.0
 
 
+@pytest.mark.heavy  # many seconds: CI's heavy tier keeps the default tier inside its five minutes
 def test_registration_finds_another_lens(monkeypatch):
     """A picture through a longer lens than registration assumes (40 degrees, the camera moved back
     to keep the framing), as a crop of a picture or another renderer's camera makes: the texture
@@ -189,6 +190,7 @@ def test_registration_finds_another_lens(monkeypatch):
     assert rigid.camera.fov_y == 60.0 and pose_error(mesh, lens, rigid.camera, 192, 192) > 0.5
 
 
+@pytest.mark.heavy  # many seconds: CI's heavy tier keeps the default tier inside its five minutes
 def test_a_small_object_is_registered_on_an_enlarged_copy():
     """A bunny about 70 px wide (a halved picture, a thumbnail) is registered on a copy enlarged a
     whole number of times (`registration_factor`; its guesses and recut enlarged alike), and the
@@ -211,6 +213,7 @@ def test_a_small_object_is_registered_on_an_enlarged_copy():
     assert large < 0.1 and large < small, (small, large)
 
 
+@pytest.mark.heavy  # many seconds: CI's heavy tier keeps the default tier inside its five minutes
 def test_registration_tries_more_views_where_the_texture_disagrees(monkeypatch):
     """Where the view refined first is wrong (here forced: the first pass keeps only the candidate
     facing most away from the true camera), the texture explains the picture poorly and registration

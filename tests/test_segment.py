@@ -74,6 +74,7 @@ def test_an_object_the_frame_cuts_off_on_a_plain_background_is_found_and_its_mas
     assert plain_share(picture) >= PLAIN_FIRST
 
 
+@pytest.mark.heavy  # many seconds: CI's heavy tier keeps the default tier inside its five minutes
 def test_a_marked_picture_on_a_busy_background_is_read_without_metadata(tmp_path, capsys):
     """The marked bunny rendered over gravel and saved as a plain PNG (no camera in it): `meshseal
     detect --mesh` finds the object, registers the camera and reads the message; the unmarked bunny on

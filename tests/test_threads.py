@@ -62,6 +62,7 @@ def test_busy_cores_reads_the_system():
     assert threads.available_cores() >= 1
 
 
+@pytest.mark.heavy  # many seconds: CI's heavy tier keeps the default tier inside its five minutes
 def test_torch_and_numba_start_with_the_policy():
     worker = run_probe(True)
     assert worker == {"n": 1, "torch": 1, "numba": 1, "wait": "PASSIVE"}

@@ -359,6 +359,7 @@ def test_train_device_errors_are_clear(dataset, tmp_path):
         assert main(["train", "--config", str(path), "--out", str(tmp_path / "run"), "--device", "cuda"]) == 2
 
 
+@pytest.mark.heavy  # many seconds: CI's heavy tier keeps the default tier inside its five minutes
 def test_camera_known_eval_reads_as_shipped_without_registering(dataset, monkeypatch):
     """`register=False`: every picture is read once, with its true camera, never registered; the report
     holds the camera-known figures alone, and they match the full run's."""
