@@ -80,6 +80,8 @@ POLISH_ITERATIONS = 6  # ... its Gauss-Newton steps a round at most ...
 POLISH_WINDOW = 256  # ... on at most this many pixels a side around the object's centre (a large picture: its central part) ...
 POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels (0: as they are) ...
 POLISH_MAX = 0.5  # ... and a move of more than this many pixels (mean screen distance) not taken
+POLISH_FOOTPRINTS = (1.0, 0.5, 0.75, 1.5)  # how the picture may have sampled the object: a render at 1 / f its size resized to it ...
+POLISH_FOOTPRINT_GAIN = 0.9  # ... a resized one used only where it fits under this share of the point samples' misfit (1.5: never)
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -536,14 +538,14 @@ def pose_error(mesh: MeshBatch, truth: Cameras, found: Cameras, height: int, wid
 
 
 def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
-                      sigmas: tuple[float, ...] = TEXTURE_SIGMAS, iterations: int = 10,
+                      sigmas: tuple[float, ...] | None = None, iterations: int = 10,
                       margin: int = 3, light_from: str = "all", zoom: bool = False) -> Cameras:
     """Sub-pixel refinement of `camera` (one camera of `picture` (1, 3, H, W), object pixels `mask`
     (1, H, W)) on the texture rather than the silhouette: Gauss-Newton on the rigid move of `_moved`
     (pixel units) minimising the squared difference between the picture and the original relit to
     match it, over interior pixels at least `margin` pixels from any silhouette (so that moves of a
     pixel or two never bring background in). Both are band-passed around each of `sigmas` in turn
-    (coarse to fine: wider basins first); the light is refitted before each level (on the pixels
+    (coarse to fine: wider basins first; TEXTURE_SIGMAS unless given); the light is refitted before each level (on the pixels
     `light_from` says, see `reading.relight.relit_residual`), and a level blurred
     by sigma > TEXTURE_SCALE_SIGMA pixels runs on a copy shrunk so that its blur is that many pixels
     (fewer pixels to render, as accurate). The Jacobian is the band-passed picture's gradient times the
@@ -557,6 +559,7 @@ def refine_on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     from where the last pass ended while it changed the field of view by ZOOM_AGAIN degrees or more,
     ZOOM_ROUNDS passes at most. Works on a copy of at most WORKING_SIZE pixels a side."""
     picture, mask = _working_size(picture, mask)
+    sigmas = TEXTURE_SIGMAS if sigmas is None else sigmas
     if not zoom:
         return _texture_levels(mesh, camera, picture, mask, sigmas, iterations, margin, light_from, False)
     for _ in range(ZOOM_ROUNDS):
@@ -860,6 +863,16 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
     camera by POLISH_AGAIN pixels or more. A least-squares step only ever lowers the cost, and
     a move of more than POLISH_MAX pixels is not taken (a picture the original explains poorly, from
     another engine, can pull the pose where the texture stage and the silhouette did not put it).
+
+    A picture made smaller after it was rendered (a page's thumbnail, a halved screenshot) averaged
+    several rendered pixels into each of its own: compared with point samples it pulls the pose off by
+    a tenth of a pixel or more. So the first round also renders the start camera's view at 1 / f the
+    window's size for each factor f of POLISH_FOOTPRINTS and resizes it to the window as an image
+    tool would; a resized render that explains the picture under POLISH_FOOTPRINT_GAIN of the point
+    samples' misfit is the one every render of the polish is made with. An enlarged picture (f = 1.5) is
+    smoother than point samples too, but its own pixel grid does not line up with the window's render
+    at 1 / f, so it keeps point samples: its candidate is there so that its smoothness is not taken for
+    a smaller picture's.
     Nothing here looks at a key: the reading's p-values stay as they are."""
     with torch.no_grad():
         start, renderer = camera, MeshRenderer()
@@ -868,6 +881,7 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
         first = _object_window(camera, picture, mask > 0.5, POLISH_WINDOW)
         crop, side = first.image[None], first.side
         crop_mask = first.seen[None].to(picture.dtype)
+        footprint = None  # chosen in the first round
         for _ in range(POLISH_ROUNDS):
             window = replace(first, camera=first.seen_from(camera))
             view = _relit_view(mesh, window.camera, crop, crop_mask, margin=2)
@@ -877,11 +891,24 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
             band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(inside, 0.0, POLISH_HIGHPASS)
             target = band(crop)[0].permute(1, 2, 0)[inside[0]].reshape(-1).double()
 
-            def rendered(deltas: torch.Tensor) -> torch.Tensor:
+            def rendered(deltas: torch.Tensor, factor: float | None = None) -> torch.Tensor:
+                factor = footprint if factor is None else factor
                 lights = fit.lights[[0] * len(deltas)]
+                size = max(8, round(side / factor))
                 image = renderer(fit.relit, _moved(window.camera, deltas.to(picture.dtype), side), lights,
-                                 side, side).image
+                                 size, size).image
+                if size != side:  # as an image tool resizes (bicubic, antialiased when it shrinks)
+                    image = F.interpolate(image, size=(side, side), mode="bicubic", antialias=size > side,
+                                          align_corners=False)
                 return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(deltas), -1).double()
+
+            if footprint is None:  # the first round: how the picture sampled the object, at the start camera
+                zero = torch.zeros(1, 6, dtype=torch.float64)
+                fits = [float(((target - rendered(zero, f)[0]) ** 2).sum()) for f in POLISH_FOOTPRINTS]
+                best = min(range(len(fits)), key=fits.__getitem__)
+                footprint = POLISH_FOOTPRINTS[best]
+                if footprint > 1.0 or fits[best] >= POLISH_FOOTPRINT_GAIN * fits[0]:
+                    footprint = 1.0
 
             moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
             both = rendered(moves)
