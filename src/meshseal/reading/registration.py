@@ -907,7 +907,8 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 fits = [float(((target - rendered(zero, f)[0]) ** 2).sum()) for f in POLISH_FOOTPRINTS]
                 best = min(range(len(fits)), key=fits.__getitem__)
                 footprint = POLISH_FOOTPRINTS[best]
-                if footprint > 1.0 or fits[best] >= POLISH_FOOTPRINT_GAIN * fits[0]:
+                point = fits[POLISH_FOOTPRINTS.index(1.0)] if 1.0 in POLISH_FOOTPRINTS else math.inf
+                if footprint > 1.0 or fits[best] >= POLISH_FOOTPRINT_GAIN * point:
                     footprint = 1.0
 
             moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
