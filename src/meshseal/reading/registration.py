@@ -902,14 +902,18 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                                           align_corners=False)
                 return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(deltas), -1).double()
 
+            at_start = None  # the start camera's render under the chosen footprint, where already made
             if footprint is None:  # the first round: how the picture sampled the object, at the start camera
                 zero = torch.zeros(1, 6, dtype=torch.float64)
-                fits = [float(((target - rendered(zero, f)[0]) ** 2).sum()) for f in POLISH_FOOTPRINTS]
+                starts = [rendered(zero, f)[0] for f in POLISH_FOOTPRINTS]
+                fits = [float(((target - start_render) ** 2).sum()) for start_render in starts]
                 best = min(range(len(fits)), key=fits.__getitem__)
                 footprint = POLISH_FOOTPRINTS[best]
                 point = fits[POLISH_FOOTPRINTS.index(1.0)] if 1.0 in POLISH_FOOTPRINTS else math.inf
                 if footprint > 1.0 or fits[best] >= POLISH_FOOTPRINT_GAIN * point:
                     footprint = 1.0
+                if footprint in POLISH_FOOTPRINTS:
+                    at_start = starts[POLISH_FOOTPRINTS.index(footprint)]
 
             moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
             both = rendered(moves)
@@ -920,7 +924,7 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 return start
             solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
             delta = torch.zeros(6, dtype=torch.float64)
-            residual = target - rendered(delta[None])[0]
+            residual = target - (rendered(delta[None])[0] if at_start is None else at_start)
             cost = float((residual ** 2).sum())
             for _ in range(POLISH_ITERATIONS):
                 update = torch.linalg.solve(solve, jacobian.T @ residual)
