@@ -26,7 +26,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     second look needs.
 
     The registered camera is not searched again here: `registration.polish` has already brought it
-    onto the picture under the reading's own rendering (docs/reading.md, stage 7)."""
+    onto the picture under the reading's own rendering (docs/reading.md, stage 4)."""
     from .. import payload
     from .registration import polish, silhouette_iou
 
@@ -39,7 +39,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     stages = 2 if alternatives else 1
     first = replace(reading, second_look=(), tries=stages)
     decision = method.decide([first], key, expect)
-    if decision.detected:
+    if decision.detected or not alternatives:
         return first
     hinted = decision.p_value <= LOOK_AGAIN_BELOW
     best, best_p = first, decision.p_value
