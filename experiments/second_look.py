@@ -3,7 +3,7 @@ picture each, put through attacks, registered and looked at again (`meshseal eva
 pictures and reading); for every picture the first reading's p-value, whether it was detected before
 and after the second look, the stage that found it (the reading's `tries`) and the seconds the second
 look took. Prints the p-values of the pictures the second look found, and what a bar on the first
-p-value (the second look skipped above it) would have saved of the second looks that found
+p-value (sharpening and the rest skipped above it) would have saved of the second looks that found
 nothing.
 
     python experiments/second_look.py --data data --start 40 --meshes 40 --attacks jpeg75,resize0.5,crop0.8 [--model default] [--json OUT]

@@ -70,6 +70,9 @@ ZOOM_PROBE_SIGMA = 1.0  # ... and only where one step of the zoomed move on this
 ZOOM_PROBE_DEGREES = 1.0  # ... by this many degrees or more (a crop's picture turns it by several; a picture of the assumed lens hardly at all)
 ZOOM_ROUNDS = 3  # the texture stage's coarse-to-fine passes at most ...
 ZOOM_AGAIN = 0.5  # ... another one while the last changed the field of view by this many degrees or more
+SHARPEN_STEPS = (0.2, 0.025)  # pixels: `sharpen`'s first and last step
+SHARPEN_RENDERS = 150  # ... and at most this many renders
+SHARPEN_WINDOW = 256  # ... of at most this many pixels a side around the object's centre
 POLISH_STEP = 0.1  # pixels: `polish`'s central differences
 POLISH_ROUNDS = 2  # ... its rounds, each with the light refitted and the Jacobian taken afresh ...
 POLISH_AGAIN = 0.02  # ... the next round only where the last moved the camera by this many pixels or more ...
@@ -799,6 +802,48 @@ def _from_window(window: _Window, delta: torch.Tensor, camera: Cameras) -> Camer
     about the view axis and move along it are in pixels at the window's edge, the window's own camera
     carries them back, then the picture's intrinsics."""
     return replace(_moved(window.camera, delta, window.side), fov_y=camera.fov_y, principal=camera.principal)
+
+
+def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
+    """`camera` moved to where the relit original, rendered as the reading renders it (antialiased and
+    unfiltered, the light fitted once at `camera`), best explains the picture (1, 3, H, W) over its
+    interior pixels. A point-sampled texture a little finer than the pixels makes the picture alias:
+    a tenth of a pixel moves each pixel to other texels, the texture leaks into the residual the
+    reading subtracts and drowns the mark, even where the texture stage calls the camera registered
+    (docs/reading.md, stage 7). The texture stage's band-passed
+    alignment cannot see that, and neither can image gradients (their Jacobian points elsewhere):
+    this is a pattern search, each of the six coordinates of `_moved` by +-step in one batch of
+    renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
+    most SHARPEN_RENDERS renders of the object's own window (at most SHARPEN_WINDOW pixels a side: in
+    a large picture, the part around the object's centre). Where it moves the camera to a worse
+    view, only the reading can tell: `reading.second_look` reads both."""
+    with torch.no_grad():
+        view = _relit_view(mesh, camera, picture, mask, margin=2)
+        if view is None:
+            return camera
+        fit, inside = view
+        window = _object_window(camera, picture, inside, SHARPEN_WINDOW)
+        renderer = MeshRenderer()
+
+        def costs(deltas: torch.Tensor) -> torch.Tensor:
+            lights = fit.lights[[0] * len(deltas)]  # the one fitted light for every trial camera
+            rendered = renderer(fit.relit, _moved(window.camera, deltas, window.side), lights, window.side,
+                                window.side).image
+            return ((rendered.permute(0, 2, 3, 1)[:, window.seen] - window.target) ** 2).sum((1, 2))
+
+        centre = torch.zeros(6, dtype=picture.dtype)
+        best, step, renders = float(costs(centre[None])[0]), SHARPEN_STEPS[0], 1
+        moves = torch.cat([torch.eye(6), -torch.eye(6)]).to(picture.dtype)
+        while step >= SHARPEN_STEPS[1] and renders + len(moves) <= SHARPEN_RENDERS:
+            trials = centre + step * moves
+            trial_costs = costs(trials)
+            renders += len(moves)
+            pick = int(trial_costs.argmin())
+            if float(trial_costs[pick]) < best:
+                best, centre = float(trial_costs[pick]), trials[pick]
+            else:
+                step /= 2
+        return _from_window(window, centre, camera)
 
 
 def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:

@@ -1,5 +1,5 @@
-"""A second look at a registered picture whose mark was not found: the registration's next-best views,
-the p-value paying for every try."""
+"""A second look at a registered picture whose mark was not found: the camera sharpened on the
+reading's own residual, then the registration's next-best views, the p-value paying for every try."""
 
 from __future__ import annotations
 
@@ -7,28 +7,36 @@ from dataclasses import replace
 
 from .read import Reading
 
+SHARPEN_ROUNDS = 2  # a second look sharpens the registered camera again (light refitted) where the first round's reading hints at a mark
 LOOK_AGAIN_BELOW = 0.05  # a second look finishes the other views where the first reading's p-value is under this, else those whose rough reading's is
+# A second look sharpens the camera only where the first reading's p-value is at most this: the marked
+# pictures a second look finds already hint at their mark there (docs/reading.md, stage 7, has the
+# pictures it was set on), and an unmarked picture's first p is mostly above it (sharpening would cost
+# it its renders for nothing).
+SHARPEN_BELOW = 0.5
 
 
 def look_again(reader, reading: Reading, original, key=None, expect=None, search: bool = True) -> Reading:
-    """A registered reading, looked at again where its mark is not found, under the registration's
+    """A registered reading, looked at again where its mark is not found: first under the registered
+    camera sharpened on the reading's own residual (`registration.sharpen`: a picture whose texture
+    aliases loses its mark to a tenth of a pixel of pose error), then under the registration's
     next-best views (`Registration.alternatives`: a near-symmetric shape's twin views fit its
     silhouette and texture alike, and only the keyed mark tells them apart), keeping the camera
     whose reading is likeliest marked. Where the registered camera's reading already hints at a
     mark (p-value under LOOK_AGAIN_BELOW: a twin view of a symmetric asset still reads part of the
-    mark) each alternative is finished (refined on the texture and polished) and read; else each is
-    first read as refined on its silhouettes alone, and finished only where that rough reading hints
-    at a mark, so that unmarked pictures pay little for it. The p-value pays for it (Bonferroni over
-    two stages, each given a half: the registered camera, the alternatives): x2 at the registered
-    camera, x2K at the best of K alternatives (x1 without alternatives), so that a reading's p-value
-    stays valid however the camera was picked (rough readings only decide what to finish). Other
-    readings, and all of them with `search` False (pooling), come back as they are, without what a
-    second look needs.
-
-    The registered camera is not searched again here: `registration.polish` has already brought it
-    onto the picture under the reading's own rendering (docs/reading.md, stage 4)."""
+    mark) each alternative is finished (refined on the texture) and read; else each is first read
+    as refined on its silhouettes alone, and finished only where that rough reading hints at a
+    mark, so that unmarked pictures pay little for it. Sharpening runs only where the registered
+    camera's p-value is at most SHARPEN_BELOW, and again (light refitted at the sharpened camera) where
+    its first reading hints at a mark, SHARPEN_ROUNDS times at most. The
+    p-value pays for all of it (Bonferroni over three stages, each given a third: the registered
+    camera, the sharpened ones, the alternatives): x3 at the registered camera, x3R at a sharpened
+    one of R rounds, x3K at the best of K alternatives (x2 and x2R without alternatives), so that a
+    reading's p-value stays valid however the camera was picked (rough readings only decide what
+    to finish). Other readings, and all of them with `search` False (pooling), come back as they
+    are, without what a second look needs."""
     from .. import payload
-    from .registration import polish, silhouette_iou
+    from .registration import polish, sharpen, silhouette_iou
 
     if not reading.second_look:
         return reading
@@ -36,10 +44,10 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     method = reader.method
     if not search or not method.second_look:
         return replace(reading, second_look=())
-    stages = 2 if alternatives else 1
+    stages = 3 if alternatives else 2
     first = replace(reading, second_look=(), tries=stages)
     decision = method.decide([first], key, expect)
-    if decision.detected or not alternatives:
+    if decision.detected:
         return first
     hinted = decision.p_value <= LOOK_AGAIN_BELOW
     best, best_p = first, decision.p_value
@@ -51,6 +59,14 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
         other = replace(first, evidence=method.evidence(original, on_device, camera), found=camera, tries=tries)
         return other, method.decide([other], key, expect).p_value
 
+    camera = reading.found.to("cpu")
+    for _ in range(SHARPEN_ROUNDS if decision.p_value <= SHARPEN_BELOW else 0):  # each round refits the light at the camera the last one found
+        camera = sharpen(on_cpu, camera, picture, mask[None].float())
+        sharpened, p_value = under(camera, stages * SHARPEN_ROUNDS)
+        if p_value < best_p:
+            best, best_p = sharpened, p_value
+        if payload.detected(p_value) or p_value > LOOK_AGAIN_BELOW:
+            break
     for alternative in alternatives:
         if payload.detected(best_p):
             break  # every stage is paid for, tried or not
