@@ -337,6 +337,22 @@ def test_binomial_pvalue_is_exact_and_never_anticonservative():
         binomial_pvalue(65, 64)
 
 
+def test_the_pilot_and_the_bits_combine_into_a_valid_p_value_whatever_their_dependence():
+    from meshseal.payload import PILOT_SHARE, any_mark_pvalue
+    assert any_mark_pvalue(0.3, None) == 0.3 and any_mark_pvalue(2.0, None) == 1.0
+    # The pilot's test carries the larger share: a pilot p-value costs less than the bits' one.
+    assert any_mark_pvalue(1.0, 1e-7) == pytest.approx(1e-7 / PILOT_SHARE)
+    assert any_mark_pvalue(1e-7, 1.0) == pytest.approx(1e-7 / (1.0 - PILOT_SHARE))
+    assert any_mark_pvalue(1e-7, 1e-7) < 2e-7 and any_mark_pvalue(0.95, 0.95) == 1.0
+    rng = np.random.default_rng(4)
+    u, v = rng.random(200_000), rng.random(200_000)
+    # Independent, identical and opposed tests: the combination never rejects more than its level.
+    for pilot, bits in ((u, v), (u, u), (u, 1.0 - u)):
+        combined = np.array([any_mark_pvalue(b, a) for a, b in zip(pilot[:50_000], bits[:50_000])])
+        for alpha in (0.01, 0.05, 0.2):
+            assert (combined <= alpha).mean() <= alpha + 3 * np.sqrt(alpha / 50_000)
+
+
 def test_detected_is_the_fpr_threshold():
     assert detected(FPR) and detected(1e-9) and not detected(2e-6)
 

@@ -190,8 +190,8 @@ class Method:
         any_mark_p = min(1.0, tries * float(payload.detection_pvalue(soft, weights))) if calibrated else None
         looks = math.prod(r.tries for r in readings)  # the cameras a second look tried
         pilot = self.pilot_pvalue(evidence, key) if calibrated else None
-        if pilot is not None:  # the pilot's test beside the bits', Bonferroni over the two
-            any_mark_p = min(1.0, 2.0 * min(any_mark_p, looks * pilot))
+        if pilot is not None:  # the pilot's test beside the bits', a weighted Bonferroni over the two
+            any_mark_p = payload.any_mark_pvalue(any_mark_p, min(1.0, looks * pilot))
         marked = any_mark_p is not None and payload.detected(any_mark_p)
         # No message to report else. The soft decoding models z-scores (unit noise): logits of a learned
         # decoder have no such scale, so theirs is the hard decoding alone.

@@ -406,7 +406,7 @@ class SpreadMethod(Method):
                     for sums in parts]
         p_value = min(1.0, len(parts) * min(p_values))
         pilot = self.pilot_pvalue(total.cpu(), key)
-        return p_value if pilot is None else min(1.0, 2.0 * min(p_value, pilot))
+        return payload.any_mark_pvalue(p_value, pilot)
 
     # ------------------------------------------------------------ training pass
     def mark_batch(self, batch, message, vertex_mask):
