@@ -238,7 +238,7 @@ class SpreadMethod(Method):
         gain = config.get("pilot_gain", 1.0)
         blocks += f" at {gain:g} of the message's amplitude" if gain != 1.0 else ""
         pilot_text = (f"{share:.0%} of them a pilot{blocks} carrying the key's own signs (a presence test whatever the message, "
-                      "beside the bits' test, Bonferroni over the two), the others " if share else "")
+                      "beside the bits' test, a weighted Bonferroni giving it nine tenths of the false-positive rate), the others " if share else "")
         text = (f"keyed spread-spectrum mark (`models/spread.py`): {config['chips']}^2 cells over the UV square"
                         f"{coarse_text}, {pilot_text}each carrying one of the bits with a random sign, colour `{config['mark_colour']}`, amplitude "
                         f"shaped by local texture activity (window {config['activity_window']}, floor "
