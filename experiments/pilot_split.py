@@ -2,7 +2,8 @@
 test (`payload.any_mark_pvalue`, `PILOT_SHARE`). Runs `meshseal eval ARGS` with every any-mark decision
 logged (the bits' p-value times the cameras and grids tried, the pilot's times the cameras tried), then
 counts the pictures detected at FPR 1e-6 under each share s of the pilot: p = min(pilot / s, bits / (1 - s)),
-s = 0.5 being twice the smaller. Every decision counts (a registered picture's second look is one more).
+s = 0.5 being twice the smaller. Every decision counts once (`meshseal eval` decides a clean picture twice, with
+and without registration: one; a mesh's views pooled and a registered picture's first look are one more each).
 
     python experiments/pilot_split.py --log OUT.jsonl -- --data data --meshes 100 --views 2 --size 256 --attacks none,jpeg90,jpeg75,jpeg50,webp80
     python experiments/pilot_split.py --summarise OUT.jsonl [MORE.jsonl ...]
@@ -52,8 +53,17 @@ def run(log_path: str, eval_args: list[str]) -> None:
 def summarise(paths: list[str]) -> None:
     from meshseal import payload
 
-    rows = [json.loads(line) for path in paths for line in open(path) if line.strip()]
-    rows = [r for r in rows if r["pilot"] is not None]
+    rows = []
+    for path in paths:
+        previous = None
+        for line in open(path):
+            if not line.strip():
+                continue
+            row = json.loads(line)
+            key = (row["bits"], row["pilot"])
+            if row["pilot"] is not None and key != previous:  # the same reading decided again counts once
+                rows.append(row)
+            previous = key
     print(f"{len(rows)} decisions with a pilot")
     print("| pilot's share s | detected at 1e-6 |")
     print("|---|---|")
