@@ -2,8 +2,9 @@
 test (`payload.any_mark_pvalue`, `PILOT_SHARE`). Runs `meshseal eval ARGS` with every any-mark decision
 logged (the bits' p-value times the cameras and grids tried, the pilot's times the cameras tried), then
 counts the pictures detected at FPR 1e-6 under each share s of the pilot: p = min(pilot / s, bits / (1 - s)),
-s = 0.5 being twice the smaller. Every decision counts once (`meshseal eval` decides a clean picture twice, with
-and without registration: one; a mesh's views pooled and a registered picture's first look are one more each).
+s = 0.5 being twice the smaller. Every decision counts once (`meshseal eval` decides a clean picture's reading
+twice, as read and as read with its camera: one; a mesh's views pooled and a registered picture's first look
+are one more each).
 
     python experiments/pilot_split.py --log OUT.jsonl -- --data data --meshes 100 --views 2 --size 256 --attacks none,jpeg90,jpeg75,jpeg50,webp80
     python experiments/pilot_split.py --summarise OUT.jsonl [MORE.jsonl ...]
@@ -16,7 +17,6 @@ import contextlib
 import io
 import json
 import math
-import sys
 
 SHARES = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0)
 
