@@ -71,8 +71,7 @@ def summarise(paths: list[str]) -> None:
     for s in SHARES:
         found = 0
         for r in rows:
-            p = min(1.0, r["pilot"] / s if s > 0 else math.inf, r["bits"] / (1 - s) if s < 1 else math.inf)
-            found += payload.detected(p)
+            found += payload.detected(payload.any_mark_pvalue(r["bits"], r["pilot"], s))
         counts[s] = found
         print(f"| {s:g}{' (twice the smaller)' if s == 0.5 else ''}{' (shipped)' if s == payload.PILOT_SHARE else ''} | {found} |")
     alone = [r for r in rows if payload.detected(r["bits"]) and not payload.detected(r["pilot"])]

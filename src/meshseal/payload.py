@@ -557,15 +557,16 @@ def detection_pvalue(z, weights=None) -> float | np.ndarray:
 PILOT_SHARE = 0.9  # the pilot's part of the false-positive rate where a mark has one; the bits' test has the rest
 
 
-def any_mark_pvalue(bits_p: float, pilot_p: float | None) -> float:
+def any_mark_pvalue(bits_p: float, pilot_p: float | None, share: float = PILOT_SHARE) -> float:
     """The p-value of "a mark under this key, whatever message" from the bits' test and, where the
     mark has one, the pilot's: weighted Bonferroni, min(pilot / s, bits / (1 - s)) for s = PILOT_SHARE,
     exact or conservative whatever the two tests' dependence (P(p_pilot <= s a) + P(p_bits <= (1 - s) a)
     <= a). The pilot gets the larger part: it is the stronger test of the two on pictures, the bits'
-    test finding a mark the pilot misses almost never."""
+    test finding a mark the pilot misses almost never. `share` 0 or 1 leaves one test alone."""
     if pilot_p is None:
         return min(1.0, bits_p)
-    return min(1.0, pilot_p / PILOT_SHARE, bits_p / (1.0 - PILOT_SHARE))
+    parts = ([pilot_p / share] if share > 0 else []) + ([bits_p / (1.0 - share)] if share < 1 else [])
+    return min(1.0, *parts)
 
 
 def match_pvalue(z, expected_bits, weights=None) -> float | np.ndarray:
