@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# One training run sized to one short GPU lease (#48). Usage on the device, from the repo root, with the
+# wheels meshseal needs in .whl/ and gpu_data/ (a dataset folder) carried:
+#   bash experiments/gpu_lease.sh END_SECONDS CONFIG [RUN]
+# It times the networks in NCHW and NHWC order (benchmarks/train_networks.py) while the views are baked
+# (cached in gpu_data/gbuffers, so a second call on the same machine skips the bake), runs the config 20 s to
+# measure the step rate, sizes its schedule to end about END_SECONDS after the script started
+# (experiments/lease_config.py), trains into runs/RUN and leaves runs/RUN as $OUT/RUN.tar with the logs.
+# Then, here: meshseal eval --data data --model runs/RUN/model.safetensors --protocol seed
+set -u
+end=$1 config=$2 name=${3:-$(basename "$2" .yaml)}
+device=${DEVICE:-cuda} data=${DATA:-gpu_data} OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+if [ -d .whl ] && ! python3 -c "import pytorch_msssim" 2>/dev/null; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+fi
+export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1
+[ "$device" = cuda ] && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+meshseal() { python3 -c "import sys; from meshseal.cli import main; sys.exit(main())" "$@"; }
+quiet() { tr '\r' '\n' | grep -v "baking\|it/s\|step/s\|steps/s]"; }
+again=""; [ -f /tmp/bench.txt ] && [ -f /tmp/calib/log.csv ] && again=1  # a second call on the same machine
+[ -z "$again" ] && { python3 benchmarks/train_networks.py --config "$config" --device "$device" --steps ${BENCH_STEPS:-30} > /tmp/bench.txt 2>&1 & }
+[ -z "$again" ] && meshseal train --config "$config" --data "$data" --out /tmp/bake --device "$device" --time-limit 0 2>&1 | quiet | tail -n 2
+echo "[$SECONDS s] views baked"
+wait; cat /tmp/bench.txt; cp /tmp/bench.txt "$OUT/bench.txt"
+ratio=$(sed -n 's/.*nhwc_over_nchw=\([0-9.]*\).*/\1/p' /tmp/bench.txt)
+last=""; python3 -c "import sys; sys.exit(0 if float('${ratio:-0}') > 1.05 else 1)" && last="--channels-last"
+python3 - "$config" "$last" <<'PY'
+import sys, yaml
+values = yaml.safe_load(open(sys.argv[1]))
+values["train"].update(channels_last=bool(sys.argv[2]), val_every=10**6, checkpoint_minutes=None)
+open("/tmp/calib.yaml", "w").write(yaml.safe_dump(values, sort_keys=False))
+PY
+[ -z "$again" ] && meshseal train --config /tmp/calib.yaml --data "$data" --out /tmp/calib --device "$device" --time-limit ${CALIBRATE_MINUTES:-0.33} 2>&1 | quiet | tail -n 1
+left=$(( end - SECONDS - ${RESERVE_S:-25} ))
+echo "[$SECONDS s] calibrated; $left s left to train"
+python3 experiments/lease_config.py "$config" --log /tmp/calib/log.csv --seconds $left $last --out /tmp/lease.yaml || exit 1
+meshseal train --config /tmp/lease.yaml --data "$data" --out "runs/$name" --device "$device" ${RESUME:-} \
+  --time-limit $(python3 -c "print(($left + 5) / 60)") 2>&1 | quiet > "$OUT/$name.log"
+tail -n 3 "$OUT/$name.log"; cat "runs/$name/val.csv"
+cp /tmp/lease.yaml "runs/$name/lease.yaml"
+tar -C runs -cf "$OUT/$name.tar" "$name"
+echo "[$SECONDS s] done"
+[ "$device" = cuda ] && nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
+exit 0
