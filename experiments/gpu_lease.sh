@@ -2,7 +2,7 @@
 # One training run sized to one short GPU lease (#48). Usage on the device, from the repo root, with the
 # wheels meshseal needs in .whl/ and gpu_data/ (a dataset folder) carried:
 #   bash experiments/gpu_lease.sh END_SECONDS CONFIG [RUN]
-# It times the networks in NCHW and NHWC order (benchmarks/train_networks.py) while the views are baked
+# It times the networks in NCHW and NHWC order (benchmarks/train_networks.py), bakes the views
 # (cached in gpu_data/gbuffers, so a second call on the same machine skips the bake), runs the config 20 s to
 # measure the step rate, sizes its schedule to end about END_SECONDS after the script started
 # (experiments/lease_config.py), trains into runs/RUN and leaves runs/RUN as $OUT/RUN.tar with the logs.
@@ -19,10 +19,10 @@ export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1
 meshseal() { python3 -c "import sys; from meshseal.cli import main; sys.exit(main())" "$@"; }
 quiet() { tr '\r' '\n' | grep -v "baking\|it/s\|step/s\|steps/s]"; }
 again=""; [ -f /tmp/bench.txt ] && [ -f /tmp/calib/log.csv ] && again=1  # a second call on the same machine
-[ -z "$again" ] && { python3 benchmarks/train_networks.py --config "$config" --device "$device" --steps ${BENCH_STEPS:-30} > /tmp/bench.txt 2>&1 & }
+[ -z "$again" ] && { python3 benchmarks/train_networks.py --config "$config" --device "$device" --steps ${BENCH_STEPS:-30} > /tmp/bench.txt 2>&1; }
 [ -z "$again" ] && meshseal train --config "$config" --data "$data" --out /tmp/bake --device "$device" --time-limit 0 2>&1 | quiet | tail -n 2
 echo "[$SECONDS s] views baked"
-wait; cat /tmp/bench.txt; cp /tmp/bench.txt "$OUT/bench.txt"
+cat /tmp/bench.txt; cp /tmp/bench.txt "$OUT/bench.txt"
 ratio=$(sed -n 's/.*nhwc_over_nchw=\([0-9.]*\).*/\1/p' /tmp/bench.txt)
 last=""; python3 -c "import sys; sys.exit(0 if float('${ratio:-0}') > 1.05 else 1)" && last="--channels-last"
 python3 - "$config" "$last" <<'PY'
