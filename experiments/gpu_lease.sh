@@ -2,10 +2,12 @@
 # One training run sized to one short GPU lease (#48). Usage on the device, from the repo root, with the
 # wheels meshseal needs in .whl/ and gpu_data/ (a dataset folder) carried:
 #   bash experiments/gpu_lease.sh END_SECONDS CONFIG [RUN]
-# It times the networks in NCHW and NHWC order (benchmarks/train_networks.py), bakes the views
-# (cached in gpu_data/gbuffers, so a second call on the same machine skips the bake), runs the config 20 s to
-# measure the step rate, sizes its schedule to end about END_SECONDS after the script started
+# It times the networks in NCHW and NHWC order (benchmarks/train_networks.py), bakes the views (into
+# gpu_data/gbuffers), runs the config 20 s to measure the step rate, sizes its schedule to end about END_SECONDS after the script started
 # (experiments/lease_config.py), trains into runs/RUN and leaves runs/RUN as $OUT/RUN.tar with the logs.
+# A second call on the warm machine reuses the timing and the rate; it must carry gpu_data again (an ignored
+# path that a call does not carry is gone there; the run bakes its views again) and the run it continues
+# (runs/NAME, for init_from), extracted here from the first call's tar.
 # Then, here: meshseal eval --data data --model runs/RUN/model.safetensors --protocol seed
 set -u
 end=$1 config=$2 name=${3:-$(basename "$2" .yaml)}
