@@ -446,3 +446,22 @@ def test_registered_eval_marks_each_mesh_under_embeds_flip_budget(dataset):
     assert abs(tight["psnr_texture_shown"] - plain["psnr_texture_shown"] - 20 * math.log10(1 / MIN_STRENGTH)) < 0.5
     assert tight["flip_object"] < plain["flip_object"] and 0.9 < plain["ssim_object"] <= 1.0
 
+
+
+def test_bn_renders_measures_the_decoders_statistics_on_rendered_pictures(dataset, tmp_path):
+    """train.bn_renders: at the end of a G-buffer run the decoder's batch-norm statistics come from rendered
+    pictures of the training meshes; no weight and none of the encoder's statistics change, and the same seed
+    gives the same statistics."""
+    quiet = lambda *_: None  # noqa: E731
+    runs = {}
+    for name, pictures in (("baked", 0), ("renders", 3), ("again", 3)):
+        Trainer(_texture_config(dataset, steps=1, bn_renders=pictures), tmp_path / name, log=quiet).fit()
+        runs[name] = load_file(str(tmp_path / name / "model.safetensors"))
+    baked, renders = runs["baked"], runs["renders"]
+    statistics = [k for k in baked if k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
+    decoder = [k for k in statistics if k.startswith("decoder.")]
+    assert decoder and any(not torch.allclose(baked[k], renders[k]) for k in decoder)
+    for key in baked:
+        if key not in decoder:
+            assert torch.equal(baked[key], renders[key]), key  # weights and the encoder's statistics
+    assert all(torch.equal(runs["again"][k], renders[k]) for k in renders)

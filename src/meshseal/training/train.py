@@ -88,6 +88,7 @@ class TrainSettings:
     log_every: int = 0  # steps between log rows (one host round trip each); 0: 1 on the CPU, 50 on a GPU
     amp: bool = True  # bfloat16 autocast on CUDA
     channels_last: bool = False  # the networks' weights (and so their activations) in NHWC memory order
+    bn_renders: int = 0  # G-buffer runs: at the end, the decoder's batch-norm statistics from this many rendered pictures
 
 
 # Banks of at least this many views are baked by a pool of processes (one per free core): a spawned
@@ -435,25 +436,36 @@ class Trainer:
         batches (cumulative, not the running average of the weights' history): a decoder whose input
         changes as the mark is squeezed reads far better with them. Its own generator, so training's
         draws are untouched."""
-        norms = [m for m in self.model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+        from .batch_norm import batch_norms, fresh_statistics
+
+        norms = batch_norms(self.model)
         if not norms or self.views is None:
             return
         bank, was_training = self.views, self.model.training
         generator = torch.Generator().manual_seed(self.config.seed * 1_000_003 + self.step)
-        momenta = [norm.momentum for norm in norms]
-        for norm in norms:
-            norm.reset_running_stats()
-            norm.momentum = None  # a cumulative average over the batches below
         self.model.train()
         size, share = self.config.train.batch_size, self.world.share(self.config.train.batch_size)
-        for _ in range(batches):  # global batches, each process its share (batch norm sees the global batch)
-            index = torch.randint(len(bank["train"]), (size,), generator=generator)[share].to(self.device)
-            message = torch.randint(0, 2, (size, self.model.n_bits), generator=generator)[share].float().to(self.device)
-            views = bank["train"][index]
-            self._gbuffer_pass(views, "train", message, torch.zeros(len(index), 3, device=self.device))
-        for norm, momentum in zip(norms, momenta):
-            norm.momentum = momentum
+        with fresh_statistics(norms):
+            for _ in range(batches):  # global batches, each process its share (batch norm sees the global batch)
+                index = torch.randint(len(bank["train"]), (size,), generator=generator)[share].to(self.device)
+                message = torch.randint(0, 2, (size, self.model.n_bits), generator=generator)[share].float().to(self.device)
+                views = bank["train"][index]
+                self._gbuffer_pass(views, "train", message, torch.zeros(len(index), 3, device=self.device))
         self.model.train(was_training)
+
+    def statistics_from_renders(self) -> None:
+        """The decoder's batch-norm statistics measured on `bn_renders` pictures the renderer makes of the
+        training meshes, framed as `detect` frames a picture: what the model will read, where the baked
+        views it trained on differ at the silhouette and in how the frame was filtered
+        (`training.batch_norm`)."""
+        from .batch_norm import decoder_statistics_from_renders
+
+        cfg = self.config.train
+        size = (400, 600) if self.method.paper_pictures else cfg.render_size
+        started = time.time()
+        decoder_statistics_from_renders(self.model, self.train_set.dataset, cfg.bn_renders, size, cfg.sampler,
+                                        seed=self.config.seed * 1_000_003 + 7)
+        self.log(f"decoder batch-norm statistics from {cfg.bn_renders} rendered pictures ({time.time() - started:.0f} s)")
 
     @torch.no_grad()
     def validate_gbuffers(self) -> dict:
@@ -739,6 +751,8 @@ class Trainer:
             if last:
                 break
         bar.close()
+        if main and self.views is not None and cfg.bn_renders > 0:
+            self.statistics_from_renders()
         self._save_model()
         summary = {"steps": self.step, "elapsed_s": round(self.elapsed, 1), "stopped_by_time_limit": stopped_early}
         if main:
