@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One training run sized to one short GPU lease (#48). Usage on the device, from the repo root, with the
-# wheels meshseal needs in .whl/ and gpu_data/ (a dataset folder) carried:
+# wheels meshseal needs there in .whl/ (pytorch-msssim alone, on the H200 image of 2026-11) and gpu_data/
+# (python experiments/gpu_data.py) carried:
 #   bash experiments/gpu_lease.sh END_SECONDS CONFIG [RUN]
 # It times the networks in NCHW and NHWC order (benchmarks/train_networks.py), bakes the views (into
 # gpu_data/gbuffers), runs the config 20 s to measure the step rate, sizes its schedule to end about END_SECONDS after the script started
