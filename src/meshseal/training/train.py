@@ -455,9 +455,9 @@ class Trainer:
 
     def statistics_from_renders(self) -> None:
         """The decoder's batch-norm statistics measured on `bn_renders` pictures the renderer makes of the
-        training meshes, framed as `detect` frames a picture: what the model will read, where the baked
-        views it trained on differ at the silhouette and in how the frame was filtered
-        (`training.batch_norm`)."""
+        training meshes, each framed by the object's box as the rendering pass frames it: what the model will
+        read, where the baked views it trained on differ at the silhouette and in how the frame was
+        filtered (`training.batch_norm`)."""
         from .batch_norm import decoder_statistics_from_renders
 
         cfg = self.config.train
