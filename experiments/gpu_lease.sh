@@ -28,12 +28,7 @@ echo "[$SECONDS s] views baked"
 cat /tmp/bench.txt; cp /tmp/bench.txt "$OUT/bench.txt"
 ratio=$(sed -n 's/.*nhwc_over_nchw=\([0-9.]*\).*/\1/p' /tmp/bench.txt)
 last=""; python3 -c "import sys; sys.exit(0 if float('${ratio:-0}') > 1.05 else 1)" && last="--channels-last"
-python3 - "$config" "$last" <<'PY'
-import sys, yaml
-values = yaml.safe_load(open(sys.argv[1]))
-values["train"].update(channels_last=bool(sys.argv[2]), val_every=10**6, checkpoint_minutes=None)
-open("/tmp/calib.yaml", "w").write(yaml.safe_dump(values, sort_keys=False))
-PY
+python3 experiments/lease_config.py "$config" --calibration $last --out /tmp/calib.yaml
 [ -z "$again" ] && meshseal train --config /tmp/calib.yaml --data "$data" --out /tmp/calib --device "$device" --time-limit ${CALIBRATE_MINUTES:-0.33} 2>&1 | quiet | tail -n 1
 left=$(( end - SECONDS - ${RESERVE_S:-25} ))
 echo "[$SECONDS s] calibrated; $left s left to train"
