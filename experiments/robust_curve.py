@@ -83,6 +83,9 @@ def main() -> None:
             named = " ".join(f"{a} {m['attacks'][a]['named']:.2f}/{m['attacks'][a]['bit_acc']:.3f}" for a in attacks)
             print(f"<!-- {colour} {psnr:g}: {m['n_meshes']} meshes, {time.time() - started:.0f} s; named / bit accuracy: "
                   f"{named} -->", flush=True)
+            for kind, entry in m.get("by_kind", {}).items():  # detected by kind of picture, so no class hides in the mean
+                row = " ".join(f"{a} {entry[a]:.2f}" for a in attacks if entry.get(a) is not None)
+                print(f"<!-- {colour} {psnr:g} {kind} ({entry['pictures']} pictures): detected {row} -->", flush=True)
 
 
 class _Subset:
