@@ -85,7 +85,7 @@ class SpreadSpectrumEncoder(nn.Module):
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
                  fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0,
-                 pilot_block: int = 1, pilot_gain: float = 1.0, layer_chips: int = 0, layer_share: float = 0.0):
+                 pilot_block: int = 1, pilot_gain: float = 1.0):
         super().__init__()
         if not 0.0 <= pilot_share < 1.0:
             raise ValueError("the pilot's share of the cells must be in [0, 1)")
@@ -96,9 +96,6 @@ class SpreadSpectrumEncoder(nn.Module):
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
         self.fine_chips, self.fine_above, self.block, self.pilot_block = fine_chips, fine_above, block, pilot_block
         self.pilot_gain = pilot_gain
-        # A second layer on a coarser grid under the same key, `layer_share` of the mark's energy, so that a
-        # picture too small (or too lossy) for the mesh's own cells still shows cells of a few pixels.
-        self.layer_chips, self.layer_share = (layer_chips, layer_share) if layer_chips and layer_share > 0 else (0, 0.0)
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
@@ -111,8 +108,7 @@ class SpreadSpectrumEncoder(nn.Module):
         `coarse_below` px in a standard view (`cell_pixels`), where a pose error of hundredths of a
         pixel already hides them; `fine_chips` where they would be over `fine_above` px, where a
         picture of the object shows a few dozen cells for all the bits; else `chips`."""
-        grids = self._grids(cell_pixels(positions, faces, uvs, self.chips), 1.0)
-        return grids[-2] if self.layer_chips and len(grids) > 1 and grids[-1] == self.layer_chips else grids[-1]
+        return self._grids(cell_pixels(positions, faces, uvs, self.chips), 1.0)[-1]
 
     def grids_to_read(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor) -> tuple[int, ...]:
         """The grids detection reads on a mesh, the model's own first: `grid_for`'s and, where that is
@@ -123,12 +119,11 @@ class SpreadSpectrumEncoder(nn.Module):
     def _grids(self, width: float, slack: float) -> tuple[int, ...]:
         """The model's grid, then the other one for cells `width` px wide, the thresholds widened by
         `slack`."""
-        grids = (self.chips,)
         if self.coarse_chips and width < slack * self.coarse_below:
-            grids = (self.chips, self.coarse_chips)
-        elif self.fine_chips and width > self.fine_above / slack:
-            grids = (self.chips, self.fine_chips)
-        return grids + ((self.layer_chips,) if self.layer_chips and self.layer_chips not in grids else ())
+            return (self.chips, self.coarse_chips)
+        if self.fine_chips and width > self.fine_above / slack:
+            return (self.chips, self.fine_chips)
+        return (self.chips,)
 
     def _draw(self, seed: int, chips: int) -> tuple[torch.Tensor, torch.Tensor]:
         generator = torch.Generator().manual_seed(seed)
@@ -214,10 +209,6 @@ class SpreadSpectrumEncoder(nn.Module):
         texture = carrier(texture, chips or self.chips)
         pattern = F.interpolate(self.cells(message, key_seed, chips).to(texture), size=texture.shape[-2:],
                                 mode="bilinear", align_corners=False)
-        if self.layer_chips and (chips or self.chips) != self.layer_chips:  # the coarse layer beside it
-            layer = F.interpolate(self.cells(message, key_seed, self.layer_chips).to(texture), size=texture.shape[-2:],
-                                  mode="bilinear", align_corners=False)
-            pattern = math.sqrt(1.0 - self.layer_share) * pattern + math.sqrt(self.layer_share) * layer
         residual = self.amplitude(texture) * pattern
         share = 1.0
         if used is not None:
@@ -405,15 +396,7 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
 def split_grids(encoder: SpreadSpectrumEncoder, sums: torch.Tensor) -> list[torch.Tensor]:
     """Cell sums of one grid or two side by side (`grids_to_read`: the model's own, then the coarse or
     the fine one) -> each grid's sums (B, C*C)."""
-    layer = [encoder.layer_chips ** 2] if encoder.layer_chips else []
     for other in (encoder.coarse_chips, encoder.fine_chips):
-        sizes = [encoder.chips ** 2, other ** 2] + layer
-        if other and sums.shape[1] == sum(sizes):
-            return list(torch.split(sums, sizes, dim=1))
-    sizes = [encoder.chips ** 2] + layer
-    if sums.shape[1] == sum(sizes):
-        return list(torch.split(sums, sizes, dim=1))
-    for other in (encoder.coarse_chips, encoder.fine_chips):  # without the layer
         sizes = [encoder.chips ** 2, other ** 2]
         if other and sums.shape[1] == sum(sizes):
             return list(torch.split(sums, sizes, dim=1))

@@ -47,8 +47,6 @@ class ModelConfig:
     bit_block: int = 1  # spread: cells given to a bit together, bit_block x bit_block (each its own sign)
     pilot_block: int = 1  # spread: the pilot's cells in pilot_block x pilot_block blocks of one sign (a wider pilot)
     pilot_gain: float = 1.0  # spread: the pilot's cells' amplitude against the message's (before the mark is scaled to its PSNR)
-    layer_chips: int = 0  # spread: a second layer of the mark on this coarser grid (0: none), read as one more grid
-    layer_share: float = 0.0  # spread: that layer's share of the mark's energy
     pilot_share: float = 0.0  # spread: the share of the cells that carry the key's own signs, not the message (a presence test)
     read_highpass: float = 1.5  # spread reading: the residual's slow part taken off (Gaussian sigma, px; `models.spread.whiten`)
     read_window: float = 2.0  # spread reading: the window of the residual's local variance (sigma, px)
@@ -110,8 +108,7 @@ class WatermarkModel(nn.Module):
                                                              config.activity_window, config.activity_floor,
                                                              config.pattern_seed, config.coarse_chips, config.coarse_below,
                                                              config.fine_chips, config.fine_above, config.bit_block,
-                                                             config.pilot_share, config.pilot_block, config.pilot_gain,
-                                                             config.layer_chips, config.layer_share)
+                                                             config.pilot_share, config.pilot_block, config.pilot_gain)
             elif config.texture_encoder == "surface":
                 self.texture_encoder = SurfaceCodeEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
                                                           config.activity_window, config.activity_floor,
