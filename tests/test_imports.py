@@ -141,3 +141,65 @@ def test_a_picked_import_must_beat_the_textures_as_given_under_the_pictures_foot
     area = SimpleNamespace(expected=seen + 0.1 * detail, usable=torch.ones(side * side, dtype=torch.bool))
     assert not imports.beats_footprint(residual(seen + 0.5 * detail), given, area, shape)  # the area explains more
     assert imports.beats_footprint(residual(seen + 0.05 * detail), given, area, shape)  # the import explains more
+
+
+def test_decimated_geometries_keep_the_textures_and_skip_small_meshes():
+    """The reading's decimated candidates are `mesh.simplify`'s at each share of DECIMATIONS, with the
+    original's textures and UVs on the original surface; a mesh under DECIMATE_FROM faces has none."""
+    from dataclasses import replace
+
+    wm = load_model("default")
+    original = wm.original(load(FIXTURES / "suzanne.glb"))
+    made = imports.decimated_geometries(original)
+    faces = original.faces.reshape(-1, 3)
+    assert set(made) == set(imports.DECIMATIONS)
+    for name, share in imports.DECIMATIONS.items():
+        geometry = made[name]
+        assert len(geometry.faces) <= int(len(faces) * share) and len(geometry.faces) >= 0.5 * share * len(faces)
+        assert geometry.textures is original.textures
+        assert geometry.uvs.shape[1] == geometry.positions.shape[1] == geometry.normals.shape[1]
+        assert float(geometry.uvs.min()) >= float(original.uvs.min()) - 1e-4
+        assert float(geometry.uvs.max()) <= float(original.uvs.max()) + 1e-4
+    small = replace(original, faces=faces[: imports.DECIMATE_FROM - 1], face_material=original.face_material[: imports.DECIMATE_FROM - 1])
+    assert imports.decimated_geometries(small) == {}
+
+
+def test_a_picture_of_a_decimated_asset_reads_against_the_decimated_original():
+    """Suzanne marked, then decimated to half its faces (`decimate0.5`, a level of detail): read against
+    the original as given the mark is lost in the moved silhouette and shading; the reading takes a
+    decimated candidate and reads the message. The clean picture keeps the original's geometry, and
+    the unmarked suzanne decimated is not detected."""
+    wm = load_model("default")
+    suzanne = load(FIXTURES / "suzanne.glb")
+    marked = wm.embed(suzanne, "ab42")
+    decimate = asset_attacks.decimated(0.5)
+    shown = {"clean": marked, "decimated": decimate(marked, None), "unmarked": decimate(suzanne, None)}
+    taken, results = {}, {}
+    real = imports.pick_geometry
+    for name, mesh in shown.items():
+        picks = []
+
+        def recording(*args, **kwargs):
+            picks.append(real(*args, **kwargs))
+            return picks[-1]
+
+        imports.pick_geometry = recording
+        try:
+            picture, cameras = _picture(mesh)
+            results[name] = wm.decide([wm.read(picture, wm.original(suzanne), camera=cameras)])
+        finally:
+            imports.pick_geometry = real
+        taken[name] = any(picks)
+    assert not taken["clean"] and taken["decimated"]
+    assert results["clean"].detected and results["clean"].message == "ab42"
+    assert results["decimated"].detected and results["decimated"].message == "ab42"
+    assert not results["unmarked"].detected and results["unmarked"].p_value > 1e-3
+
+    kept = imports.DECIMATIONS  # the same picture without the candidates: the mark is not found
+    imports.DECIMATIONS = {}
+    try:
+        picture, cameras = _picture(shown["decimated"])
+        without = wm.decide([wm.read(picture, wm.original(suzanne), camera=cameras)])
+    finally:
+        imports.DECIMATIONS = kept
+    assert without.p_value > results["decimated"].p_value * 1e6
