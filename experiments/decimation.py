@@ -1,16 +1,18 @@
-"""Pictures of decimated assets (a level of detail), read with the reading's decimated candidates
-(`reading.imports.DECIMATIONS`, fast-simplification's quadric decimation) or others (`--decimations`):
-our own decimation at 50 and 35 % of the faces (`decimate0.5`, `decimate0.35`) and, with
-`--blender-python`, Blender's (the Decimate modifier, collapse, keeping UVs: `decimate_blenderR`), a
-level of detail made by another tool. Blender runs in its own Python (an environment with `pip install
-bpy==5.0.1`), on arrays passed through a temporary .npz file.
+"""Pictures of decimated assets (a level of detail): the suite's own decimation (`decimate0.5`,
+fast-simplification's quadric decimation of the mesh as stored, split at its UV seams) at 50 and 35 % of
+the faces, and, with `--blender-python`, Blender's (the Decimate modifier, collapse, on the welded mesh
+keeping UVs: `decimate_blenderR`), a level of detail made by another tool. Blender runs in its own
+Python (an environment with `pip install bpy==5.0.1`), on arrays passed through a temporary .npz file.
 
     python experiments/decimation.py --data data --meshes 100 [--blender-python /tmp/venvb/bin/python]
-        [--ratios 0.5 0.35] [--decimations 0.5 0.25 | --decimations none]
+        [--ratios 0.5 0.35] [--views 1]
+
+(The reading with decimated copies of the original as candidates, measured and not taken, is commit
+61528aa's: its `--decimations` and `--below` options; docs/reading.md, "Alternatives measured".)
 
 Reads the first N test meshes as `meshseal eval --attacks none,decimate0.5,decimate0.35,decimate_blenderR`
-does (one seeded 256^2 view, marked as `meshseal embed` marks, camera known) and prints one line of JSON:
-detected by attack and by kind of picture, and the reading's candidates.
+does (seeded 256^2 views, marked as `meshseal embed` marks, camera known) and prints one line of JSON:
+detected by attack and by kind of picture.
 """
 
 from __future__ import annotations
@@ -91,31 +93,25 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=ROOT / "data")
     parser.add_argument("--meshes", type=int, default=100)
     parser.add_argument("--ratios", type=float, nargs="+", default=[0.5, 0.35])
-    parser.add_argument("--decimations", nargs="+", default=None,
-                        help="the reading's candidate shares of the faces (default reading.imports.DECIMATIONS; none: no candidates)")
-    parser.add_argument("--below", type=float, default=None,
-                        help="take a candidate where its residual detail is under this share (reading.imports.GEOMETRY_BELOW)")
+    parser.add_argument("--views", type=int, default=1)
     args = parser.parse_args()
     from meshseal.api import load as load_model
     from meshseal.data.dataset import MeshDataset
     from meshseal.evaluation import asset_attacks, attacks
     from meshseal.evaluation.evaluate import evaluate_registered
-    from meshseal.reading import imports
 
+    asset_attacks.ASSET_ATTACKS.setdefault("decimate0.35", asset_attacks.decimated(0.35))
+    attacks.ASSET_NAMES = (*attacks.ASSET_NAMES, "decimate0.35")
     names = ["decimate0.5", "decimate0.35"]
     for ratio in args.ratios if args.blender_python else []:
         name = f"decimate_blender{ratio:g}"
         asset_attacks.ASSET_ATTACKS[name] = blender_decimated(args.blender_python, ratio)
         attacks.ASSET_NAMES = (*attacks.ASSET_NAMES, name)
         names.append(name)
-    if args.below is not None:
-        imports.GEOMETRY_BELOW = args.below
-    if args.decimations is not None:
-        imports.DECIMATIONS = {} if args.decimations == ["none"] else {f"decimated {share}": float(share) for share in args.decimations}
     model = load_model("default").model
     result = evaluate_registered(model, MeshDataset(args.data, "test", seed=0), args.meshes, 0, 256, "seed", None,
-                                 views=1, register=False, max_flip=0.03, attacks=["none", *names])
-    print(json.dumps({"decimations": imports.DECIMATIONS, "below": imports.GEOMETRY_BELOW, "attacks": result.get("attacks"), "by_kind": result.get("by_kind")}))
+                                 views=args.views, register=False, max_flip=0.03, attacks=["none", *names])
+    print(json.dumps({"attacks": result.get("attacks"), "by_kind": result.get("by_kind")}))
 
 
 if __name__ == "__main__":

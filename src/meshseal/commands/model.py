@@ -118,7 +118,7 @@ def register(subparsers) -> None:
                                "resize0.75, resize1.5, crop0.8, screenshot, jpeg90_screenshot, jpeg75_screenshot (a JPEG pasted into a "
                                "screenshot), jpeg75_crop0.8 (a JPEG cropped), brightness, noise2; on the marked asset before "
                                "it is rendered: texture_jpeg90, texture_half, texture_bc1, texture_bc7, obj_glb, "
-                               "decimate0.5, decimate0.35); the resizes, the crop and the screenshots need --register. Prints one "
+                               "decimate0.5); the resizes, the crop and the screenshots need --register. Prints one "
                                "row an attack")
     evaluate.add_argument("--json", action="store_true", help="print one JSON object")
     evaluate.set_defaults(func=run_eval)

@@ -119,7 +119,6 @@ ASSET_ATTACKS: dict[str, Callable] = {
     "texture_bc7": block_compressed("bc7"),
     "obj_glb": converted,
     "decimate0.5": decimated(0.5),
-    "decimate0.35": decimated(0.35),
 }
 
 

@@ -120,7 +120,7 @@ GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot", "j
 
 # The asset attacks (`asset_attacks.ASSET_ATTACKS`, on the marked mesh before it is rendered), named here
 # so that parsing a list needs neither torch nor the mesh package.
-ASSET_NAMES = ("texture_jpeg90", "texture_half", "texture_bc1", "texture_bc7", "obj_glb", "decimate0.5", "decimate0.35")
+ASSET_NAMES = ("texture_jpeg90", "texture_half", "texture_bc1", "texture_bc7", "obj_glb", "decimate0.5")
 
 
 def parse(text: str) -> list[str]:

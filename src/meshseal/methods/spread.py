@@ -104,16 +104,11 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
         given_footprint = None  # the textures' footprint, where an import was weighed against it and not taken
         if imports is not None and n_images == 1:  # the asset as its import made it, where that explains the picture
-            from ..reading.imports import beats_footprint, geometry_screen, pick, pick_geometry, pick_normals
+            from ..reading.imports import beats_footprint, pick, pick_normals
 
             if imports.normals is not None and pick_normals(found, imports.normals, cameras, (n_images, height, width)):
                 mesh = replace(mesh, normals=imports.normals)
                 found = relit_residual(mesh, image, cameras)
-            for geometry in imports.geometries.values():  # the asset decimated, as a level of detail shows it
-                if geometry_screen(found, geometry, image, cameras, (n_images, height, width)):
-                    candidate = relit_residual(geometry, image, cameras)
-                    if pick_geometry(found, candidate, (n_images, height, width)):
-                        mesh, found = geometry, candidate
             chosen = pick(found, mesh.textures, imports.textures, (n_images, height, width))
             if chosen is not None:
                 imported = replace(mesh, textures=imports.textures[chosen])

@@ -22,7 +22,7 @@ attack `texture_half` of `evaluation.asset_attacks` is made of the same `resized
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -74,53 +74,11 @@ def imported_textures(textures: list) -> dict[str, list]:
 @dataclass
 class Imports:
     """A prepared original as an asset's import may have changed it: its textures as each import of
-    `IMPORTS` makes them (`imported_textures`), its vertex normals recomputed from the faces (B, V,
-    3), None where those are the normals it has, and its geometry decimated to each share of its faces
-    in `DECIMATIONS` (`decimated_geometries`: name -> `render.MeshBatch`)."""
+    `IMPORTS` makes them (`imported_textures`), and its vertex normals recomputed from the faces (B, V,
+    3), None where those are the normals it has."""
 
     textures: dict[str, list]
     normals: torch.Tensor | None
-    geometries: dict = field(default_factory=dict)
-
-
-# A game's level of detail, a store's web viewer or a converter may show the asset decimated: the shares of
-# its faces the reading tries (quadric-error decimation keeping UVs, `mesh.simplify`), on meshes of at least
-# DECIMATE_FROM faces. A decimated mesh moves the silhouette and the shading by more than the mark, and
-# its texture coordinates with them, so a picture of it read against the original leaves the misfit in the
-# residual; the decimation closest to the one the picture shows takes most of it off.
-DECIMATIONS = {"decimated 1/2": 0.5, "decimated 1/4": 0.25}
-DECIMATE_FROM = 64
-# A decimated candidate is taken where its residual detail is under this share of the current geometry's:
-# stricter than PICK_BELOW. Where the picture shows the candidate's own decimation the share is hundredths;
-# another tool's decimation (Blender's, which keeps the silhouette) is explained about as well by the
-# original, and a candidate taken at 0.8 there lost a few of its pictures (experiments/decimation.py).
-GEOMETRY_BELOW = 0.3
-
-
-def decimated_geometries(original) -> dict:
-    """The prepared original (`render.MeshBatch` of one mesh) decimated to each share of `DECIMATIONS`
-    (its textures and materials kept, normals recomputed, UVs interpolated on the original surface), by
-    name; none for a mesh under DECIMATE_FROM faces, or where the simplifier fails."""
-    from ..errors import MeshError
-    from ..mesh import Material, Mesh, simplify
-
-    faces = original.faces if original.faces.dim() == 2 else original.faces[0]
-    if original.positions.shape[0] != 1 or original.uvs is None or len(faces) < DECIMATE_FROM:
-        return {}
-    materials = [Material() for _ in original.textures]
-    mesh = Mesh(original.positions[0].cpu(), original.normals[0].cpu(), faces.cpu(), original.uvs[0].cpu(),
-                original.face_material.cpu(), materials)
-    out = {}
-    for name, share in DECIMATIONS.items():
-        try:
-            smaller = simplify(mesh, max(4, int(len(faces) * share)))
-        except MeshError:
-            continue
-        device = original.positions.device
-        out[name] = replace(original, positions=smaller.positions[None].to(original.positions),
-                            normals=smaller.normals[None].to(original.normals), uvs=smaller.uvs[None].to(original.uvs),
-                            faces=smaller.faces.to(device), face_material=smaller.face_material.to(device))
-    return out
 
 
 # Normals recomputed from the faces are a candidate where some differ from the given ones by more than this
@@ -138,7 +96,7 @@ def imported(original) -> Imports:
         recomputed = vertex_normals(original.positions[0], faces)[None].to(original.normals)
         if float((recomputed - original.normals).norm(dim=-1).max()) > NORMALS_DIFFER:
             normals = recomputed
-    return Imports(imported_textures(list(original.textures)), normals, decimated_geometries(original))
+    return Imports(imported_textures(list(original.textures)), normals)
 
 
 def _detail(residual: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, int]) -> float:
@@ -166,44 +124,6 @@ def pick_normals(found, normals: torch.Tensor, cameras, shape: tuple[int, int, i
     pixel = found.fragments.pixel.index_select(0, found.keep)
     given = _detail(found.seen - found.expected, pixel, shape)
     return _detail(found.seen - expected, pixel, shape) < PICK_BELOW * given
-
-
-def geometry_screen(found, geometry, image: torch.Tensor, cameras, shape: tuple[int, int, int]) -> bool:
-    """A first, cheap look: whether a decimated original (`geometry`, `render.MeshBatch`) rendered under
-    the light fitted to the current prediction (`found`: no light fit of its own) explains one picture
-    (B, 3, H, W) better than `found` does (`pick_geometry`'s rule). Only where it does is the candidate
-    relit and compared in full."""
-    from ..render import MeshRenderer, pixels_at
-
-    if found.seen.shape[0] == 0:
-        return False
-    _, height, width = shape
-    render = MeshRenderer()(replace(found.relit, positions=geometry.positions, normals=geometry.normals,
-                                    uvs=geometry.uvs, faces=geometry.faces, face_material=geometry.face_material),
-                            cameras, found.lights, height, width)
-    inside = render.rgba[..., 3] > 0.999
-    pixel = torch.nonzero(inside.reshape(-1)).squeeze(1)
-    if len(pixel) < max(16, 0.1 * found.seen.shape[0]):
-        return False
-    flat = lambda values: values.permute(0, 2, 3, 1).reshape(-1, values.shape[1]).index_select(0, pixel)  # noqa: E731
-    other = _detail(flat(image).to(render.image) - flat(render.image), pixel, shape)
-    given = _detail(found.seen - found.expected, found.fragments.pixel.index_select(0, found.keep), shape)
-    return other < GEOMETRY_BELOW * given
-
-
-def pick_geometry(found, candidate, shape: tuple[int, int, int]) -> bool:
-    """Whether another geometry's prediction (`candidate`, `relight.RelitResidual` of a decimated
-    original, its light fitted anew) explains one picture better than `found` (the current one's): the
-    high-passed residual's energy per covered pixel (`_detail`) under PICK_BELOW of the current one's.
-    Per pixel, because a decimated asset covers other pixels than the original: where the original
-    covers a part that decimation took away, the picture shows the background there, a residual far
-    larger than any mark. A candidate covering under a tenth of the current one's pixels is not taken.
-    Only the picture and the original are looked at."""
-    if found.seen.shape[0] == 0 or candidate.seen.shape[0] < max(16, 0.1 * found.seen.shape[0]):
-        return False
-    given = _detail(found.seen - found.expected, found.fragments.pixel.index_select(0, found.keep), shape)
-    other = _detail(candidate.seen - candidate.expected, candidate.fragments.pixel.index_select(0, candidate.keep), shape)
-    return other < GEOMETRY_BELOW * given
 
 
 def beats_footprint(candidate, found, footprint, shape: tuple[int, int, int]) -> bool:
