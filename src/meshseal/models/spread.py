@@ -393,25 +393,13 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
     return torch.cat(sums, dim=1)
 
 
-SMOOTHED_FINE_SIGMA = 0.0  # experiment: > 0, the fine grid's sums also read blurred by this many cells
-
-
 def split_grids(encoder: SpreadSpectrumEncoder, sums: torch.Tensor) -> list[torch.Tensor]:
     """Cell sums of one grid or two side by side (`grids_to_read`: the model's own, then the coarse or
     the fine one) -> each grid's sums (B, C*C)."""
     for other in (encoder.coarse_chips, encoder.fine_chips):
         sizes = [encoder.chips ** 2, other ** 2]
         if other and sums.shape[1] == sum(sizes):
-            parts = list(torch.split(sums, sizes, dim=1))
-            if SMOOTHED_FINE_SIGMA > 0 and other == encoder.fine_chips:
-                grid = parts[1].reshape(-1, 1, other, other)
-                radius = int(3 * SMOOTHED_FINE_SIGMA + 1)
-                padded = F.pad(grid, (radius,) * 4, mode="circular")
-                from ..imaging import gaussian_blur
-
-                blurred = gaussian_blur(padded, SMOOTHED_FINE_SIGMA)[..., radius:-radius, radius:-radius]
-                parts.append(blurred.reshape(len(sums), -1))
-            return parts
+            return list(torch.split(sums, sizes, dim=1))
     return [sums]  # the model's grid alone
 
 
