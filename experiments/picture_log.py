@@ -8,6 +8,7 @@ line: the mesh's index and id, the attack, the object's pixels, the picture's ki
     python experiments/picture_log.py --data data --meshes 100 --attacks none,jpeg90 --out LOG.jsonl
         [--config configs/default.yaml] [--set KEY=VALUE ...]
     python experiments/picture_log.py --show LOG.jsonl --kind small [--attack none]
+    python experiments/picture_log.py --summary LOG.jsonl   # by kind and attack: detected, pilot z, z / PNG z
 """
 
 from __future__ import annotations
@@ -79,6 +80,28 @@ def show(args) -> None:
               f"{'detected' if line.get('detected') else 'missed  '} p {p if p is None else f'{p:.1e}'} pilot z {line.get('pilot_z')}")
 
 
+def summary(path: str) -> None:
+    """By kind and attack: pictures, detected, the pilot's z (the larger over the grids read) at its
+    quartiles, and the median of each picture's z over its own PNG z."""
+    import numpy as np
+
+    lines = [json.loads(text) for text in Path(path).read_text().splitlines() if text.strip()]
+    png = {line["mesh"]: max(line["pilot_z"]) for line in lines if line["attack"] == "png" and line.get("pilot_z")}
+    print("| kind | attack | pictures | detected | pilot z p25 / p50 / p75 | z / PNG z, median |\n|---|---|---|---|---|---|")
+    kinds = sorted({kind for line in lines for kind in line["kinds"]})
+    attacks = list(dict.fromkeys(line["attack"] for line in lines if line["attack"] != "none"))
+    for kind in kinds:
+        for attack in attacks:
+            chosen = [line for line in lines if line["attack"] == attack and kind in line["kinds"]]
+            z = np.array([max(line["pilot_z"]) for line in chosen if line.get("pilot_z")])
+            ratio = [max(line["pilot_z"]) / png[line["mesh"]] for line in chosen
+                     if line.get("pilot_z") and png.get(line["mesh"], 0) > 0]
+            if len(z):
+                q = np.quantile(z, [0.25, 0.5, 0.75])
+                print(f"| {kind} | {attack} | {len(chosen)} | {np.mean([bool(line.get('detected')) for line in chosen]):.2f} | "
+                      f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} | {np.median(ratio):.2f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT / "data")
@@ -88,10 +111,13 @@ def main() -> None:
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "default.yaml")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--show", default=None, help="a log this script wrote: print its pictures, smallest first")
+    parser.add_argument("--summary", default=None, help="a log this script wrote: a table by kind and attack")
     parser.add_argument("--kind", default=None, help="with --show: only pictures of this kind")
     parser.add_argument("--attack", default="png", help="with --show: this attack's readings (png: as rendered)")
     args = parser.parse_args()
-    if args.show:
+    if args.summary:
+        summary(args.summary)
+    elif args.show:
         show(args)
     elif args.out is None:
         parser.error("--out LOG.jsonl is needed to record")
