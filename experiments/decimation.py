@@ -1,6 +1,6 @@
 """Pictures of decimated assets (a level of detail): the suite's own decimation (`decimate0.5`,
 fast-simplification's quadric decimation of the mesh as stored, split at its UV seams) at 50 and 35 % of
-the faces, and, with `--blender-python`, Blender's (the Decimate modifier, collapse, on the welded mesh
+the faces, and, with `--blender-python`, Blender's (the Decimate modifier, collapse, on the same mesh,
 keeping UVs: `decimate_blenderR`), a level of detail made by another tool. Blender runs in its own
 Python (an environment with `pip install bpy==5.0.1`), on arrays passed through a temporary .npz file.
 
