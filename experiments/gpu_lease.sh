@@ -25,8 +25,8 @@ quiet() { tr '\r' '\n' | grep -v "baking\|it/s\|step/s\|steps/s]"; }
 again=""; [ -f /tmp/bench.txt ] && [ -f /tmp/calib/log.csv ] && again=1  # a second call on the same machine
 [ -z "$again" ] && { python3 benchmarks/train_networks.py --config "$config" --device "$device" --steps ${BENCH_STEPS:-30} > /tmp/bench.txt 2>&1; }
 # The bake: one step of the config with no batch-norm measurement after it (lease_config --bn-renders 0).
-python3 experiments/lease_config.py "$config" --calibration --bn-renders 0 --out /tmp/bake.yaml
-[ -z "$again" ] && meshseal train --config /tmp/bake.yaml --data "$data" --out /tmp/bake --device "$device" --time-limit 0 2>&1 | quiet | tail -n 2
+[ -z "$again" ] && { python3 experiments/lease_config.py "$config" --calibration --bn-renders 0 --out /tmp/bake.yaml
+  meshseal train --config /tmp/bake.yaml --data "$data" --out /tmp/bake --device "$device" --time-limit 0 2>&1 | quiet | tail -n 2; }
 echo "[$SECONDS s] views baked"
 cat /tmp/bench.txt; cp /tmp/bench.txt "$OUT/bench.txt"
 ratio=$(sed -n 's/.*nhwc_over_nchw=\([0-9.]*\).*/\1/p' /tmp/bench.txt)

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
+import re
 import sys
 from pathlib import Path
 
@@ -36,11 +38,9 @@ CALIBRATION_BN_RENDERS = 64
 
 def bn_seconds(output: Path, count: int) -> float:
     """Seconds the final run's batch-norm measurement of `count` rendered pictures will take, from the
-    calibration run's output (its line "decoder batch-norm statistics from N rendered pictures (S s)"),
-    plus a second a picture batch of slack; 0 where the config measures none or the line is missing."""
-    import math
-    import re
-
+    calibration run's output (its line "decoder batch-norm statistics from N rendered pictures (S s)": S
+    is rounded to whole seconds, so S + 1 is scaled, from N pictures to `count`); 0 where the config
+    measures none or the line is missing."""
     found = re.findall(r"statistics from (\d+) rendered pictures \((\d+) s\)", output.read_text() if output.is_file() else "")
     if not count or not found:
         return 0.0

@@ -71,8 +71,13 @@ def record(args) -> None:
     print(json.dumps(result.get("by_kind")))
 
 
+def _lines(path) -> list[dict]:
+    """The JSON lines of a log `record` wrote."""
+    return [json.loads(text) for text in Path(path).read_text().splitlines() if text.strip()]
+
+
 def show(args) -> None:
-    lines = [json.loads(text) for text in Path(args.show).read_text().splitlines() if text.strip()]
+    lines = _lines(args.show)
     chosen = [line for line in lines if line["attack"] == args.attack and (not args.kind or args.kind in line["kinds"])]
     for line in sorted(chosen, key=lambda line: line["pixels"]):
         p = line.get("p")
@@ -85,7 +90,7 @@ def summary(path: str) -> None:
     quartiles, and the median of each picture's z over its own PNG z."""
     import numpy as np
 
-    lines = [json.loads(text) for text in Path(path).read_text().splitlines() if text.strip()]
+    lines = _lines(path)
     png = {line["mesh"]: max(line["pilot_z"]) for line in lines if line["attack"] == "png" and line.get("pilot_z")}
     print("| kind | attack | pictures | detected | pilot z p25 / p50 / p75 | z / PNG z, median |\n|---|---|---|---|---|---|")
     kinds = sorted({kind for line in lines for kind in line["kinds"]})

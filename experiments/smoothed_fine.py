@@ -9,6 +9,7 @@ and halved after: the halving spreads each cell over its neighbours), as a third
 
 import runpy
 import sys
+from pathlib import Path
 
 import meshseal.models.spread as spread
 
@@ -16,4 +17,4 @@ if not hasattr(spread, "SMOOTHED_FINE_SIGMA"):
     sys.exit("this experiment needs commit 2849a43's src/meshseal/models/spread.py (git checkout 2849a43 -- src/meshseal/models/spread.py)")
 spread.SMOOTHED_FINE_SIGMA = float(sys.argv[1])
 sys.argv = ["robust_curve.py"] + sys.argv[2:]
-runpy.run_path(str(__import__("pathlib").Path(__file__).with_name("robust_curve.py")), run_name="__main__")
+runpy.run_path(str(Path(__file__).with_name("robust_curve.py")), run_name="__main__")
