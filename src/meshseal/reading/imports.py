@@ -109,21 +109,31 @@ def _detail(residual: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
 def pick_normals(found, normals: torch.Tensor, cameras, shape: tuple[int, int, int]) -> bool:
     """Whether the recomputed `normals` (B, V, 3) predict one picture better than the original's own.
 
-    `found` (`relight.RelitResidual` of the original as given): the original is rendered again with
-    `normals` under the light fitted there, over the same pixels, and the high-passed residuals are
-    compared as `pick` compares textures (under PICK_BELOW of the given normals'). Only the picture and
-    the original are looked at."""
-    from ..render import MeshRenderer, pixels_at
+    `found` (`relight.RelitResidual` of the original as given): the original is shaded again with
+    `normals` under the light fitted there, at the same fragments, and the change the normals make is
+    added to the prediction, spread as the splatting renderer spreads a pixel's colour (a Gaussian of
+    its sigma over the covered pixels); the high-passed residuals are then compared as `pick` compares
+    textures (under PICK_BELOW of the given normals'). Only the picture and the original are looked at."""
+    from ..models.spread import local_mean
+    from ..render import MeshRenderer, interpolate
 
     if found.seen.shape[0] == 0:
         return False
-    _, height, width = shape
-    other = MeshRenderer()(replace(found.relit, normals=normals), cameras, found.lights, height, width,
-                           fragments=found.fragments)
-    expected = pixels_at(other.image, found.fragments).index_select(0, found.keep).to(found.seen)
-    pixel = found.fragments.pixel.index_select(0, found.keep)
-    given = _detail(found.seen - found.expected, pixel, shape)
-    return _detail(found.seen - expected, pixel, shape) < PICK_BELOW * given
+    renderer = MeshRenderer()
+    fragments, n_images = found.fragments, len(cameras)
+    surface = found.surface if found.surface is not None else renderer.surface(found.relit, cameras, fragments)
+    world, _, albedo, material = surface
+    other = interpolate(normals.expand(n_images, -1, -1) if normals.shape[0] == 1 else normals, fragments)
+    on = cameras.to(world.device, world.dtype)
+    lights = found.lights.to(world.device, world.dtype)
+    change = (renderer.shade(found.relit, on, lights, fragments, (world, other, albedo, material))
+              - renderer.shade(found.relit, on, lights, fragments, surface))
+    change = local_mean(change, fragments.pixel, shape, renderer.sigma).index_select(0, found.keep).to(found.seen)
+    pixel = fragments.pixel.index_select(0, found.keep)
+    given = found.seen - found.expected
+    both = torch.cat([given, given - change], 1)
+    detail = ((both - local_mean(both, pixel, shape, PICK_HIGHPASS)) ** 2).sum(0)
+    return float(detail[3:].sum()) < PICK_BELOW * float(detail[:3].sum())
 
 
 def beats_footprint(candidate, found, footprint, shape: tuple[int, int, int]) -> bool:

@@ -39,6 +39,7 @@ class RelitResidual:
     fragments: object
     relit: MeshBatch
     lights: object
+    surface: tuple | None = None  # `MeshRenderer.surface` of the original at `fragments` (relighting keeps it)
 
 
 _SURFACE = ("positions", "normals", "uvs", "faces", "face_material", "textures", "diffuse")  # `MeshRenderer.surface` reads
@@ -89,11 +90,16 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
     albedo = pixels_at(flat.image, fragments)
     fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
     seen = pixels_at(image, fragments)
-    _, ambient, lights = relight_fragments(mesh, fragments, cameras, seen, albedo, fit_on, predict=False)
+    # the surface points and camera-facing unit normals (`unrender.surface_points`), from the surface's
+    world, normal = surface[0], surface[1]
+    unit = F.normalize(normal, dim=-1, eps=1e-12)
+    toward = on.eye.index_select(0, fragments.batch) - world
+    points = (world, torch.where((unit * toward).sum(-1, keepdim=True) < 0, -unit, unit))
+    _, ambient, lights = relight_fragments(mesh, fragments, cameras, seen, albedo, fit_on, predict=False, points=points)
     if polish:
         inside = pixels_at(flat.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
         ambient, lights = splat_polished_light(fragments, surface, cameras, seen, albedo, inside, ambient, lights,
-                                               (n_images, height, width), renderer.sigma, fit_on)
+                                               (n_images, height, width), renderer.sigma, fit_on, points[1])
     return fragments, _with_ambient_per_image(mesh, ambient), lights, albedo, surface
 
 
@@ -105,7 +111,7 @@ POLISH_TOLERANCE = 1e-4  # it stops once a step moves the light less than this t
 
 def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torch.Tensor, albedo: torch.Tensor,
                          inside: torch.Tensor, ambient: torch.Tensor, lights, shape: tuple[int, int, int],
-                         sigma: float, fit_on: torch.Tensor | None = None):
+                         sigma: float, fit_on: torch.Tensor | None = None, unit: torch.Tensor | None = None):
     """The point light of `fit_point_light` polished for a picture our splatting renderer made.
 
     `fit_point_light` models each pixel as the albedo at it (antialiased: the splatted albedo render)
@@ -122,7 +128,8 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
     only where it explains those pixels better than the point model did (a picture sampled otherwise,
     by another engine, can keep its first fit).
     `fragments`/`surface` (`MeshRenderer.surface`: world position, normal, point-sampled albedo), `seen`
-    and `albedo` (P, 3) at the fragments; `shape` (B, H, W) of the pictures. Looks at the picture and the
+    and `albedo` (P, 3) at the fragments; `shape` (B, H, W) of the pictures; `unit` (P, 3): the surface's
+    unit normals facing the camera, where the caller has them. Looks at the picture and the
     original only. Returns ambient (B, 3) and PointLights, as `fit_point_light` does."""
     import torch.nn.functional as F
 
@@ -138,9 +145,10 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
     gaussian = _kernels(sigma, seen.dtype, seen.device)[0].reshape(9)  # the splat's 3x3 Gaussian
     samplings = (gaussian, torch.zeros_like(gaussian).index_fill_(0, torch.tensor([4], device=gaussian.device), 1.0))
     offsets = torch.tensor([dy * columns + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=local.device)
-    unit = F.normalize(normal, dim=-1, eps=1e-12)
-    eye = cameras.eye.to(world).index_select(0, fragments.batch)
-    unit = torch.where((unit * (eye - world)).sum(-1, keepdim=True) < 0, -unit, unit)
+    if unit is None:
+        unit = F.normalize(normal, dim=-1, eps=1e-12)
+        eye = cameras.eye.to(world).index_select(0, fragments.batch)
+        unit = torch.where((unit * (eye - world)).sum(-1, keepdim=True) < 0, -unit, unit)
     ambient, position, intensity = ambient.clone(), lights.position.clone(), lights.intensity.clone()
     for index in range(shape[0]):
         chosen = torch.nonzero(fragments.batch == index).squeeze(1)
@@ -189,18 +197,22 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
             d = ((suu * svy - suv * suy) / det).clamp_min(0.0)
             return y[:, :, None] - a * a_ - d * diffuse_term, a, d
 
+        around_albedo = u[around]  # (U, 9, 3): each used pixel's neighbours' albedo
+
         def sampled(candidates: torch.Tensor):  # the exact model's diffuse term at the used pixels (U, 3, K)
-            lit = u[:, :, None] * lambert(candidates)[:, None, :]  # (N, 3, K)
-            return torch.einsum("o,uocK->ucK", weights, lit[around])
+            # sum over the neighbours o of weight(o) x albedo(o) x Lambert(o), as one batched product
+            return torch.bmm(weighted, lambert(candidates)[around])
 
         point = float((fit(a_term[:, :, None] * lambert(start[None])[centre][:, None, :])[0] ** 2).sum())
         # the sampling that explains these pixels best at the first fit's light: splatted, or point samples
         costs = []
         for weights in samplings:
-            a_term = torch.einsum("o,uoc->uc", weights, u[around])
+            weighted = (around_albedo * weights[None, :, None]).transpose(1, 2).contiguous()  # (U, 3, 9)
+            a_term = weighted.sum(2)
             costs.append(float((fit(sampled(start[None]))[0] ** 2).sum()))
         weights = samplings[min(range(len(samplings)), key=costs.__getitem__)]
-        a_term = torch.einsum("o,uoc->uc", weights, u[around])
+        weighted = (around_albedo * weights[None, :, None]).transpose(1, 2).contiguous()
+        a_term = weighted.sum(2)
         # Levenberg-Marquardt on the light's position, the strengths projected out (closed form at
         # each position), the Jacobian by forward differences: one batch of four positions a step.
         light, damping, best = start, 1e-3, None
@@ -254,7 +266,8 @@ def relit_residual(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light
         pick = lambda values: values.index_select(0, keep)  # noqa: E731
         return RelitResidual(pick(pixels_at(image, fragments)).to(image), pick(pixels_at(relit_render.image, fragments)).to(image),
                              pick(albedo).to(image), pick(uv).to(image), pick(per_fragment(mesh.face_material, fragments)),
-                             pick(fragments.batch), keep, fragments, relit, lights)
+                             pick(fragments.batch), keep, fragments, relit, lights,
+                             surface if same else None)
 
 
 def flattest_half(albedo: torch.Tensor, fragments, reach: int = 2) -> torch.Tensor:

@@ -74,7 +74,7 @@ def _best_light(y, u, position, normal, candidates):
 
 def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: torch.Tensor | None = None,
                       fit_on: torch.Tensor | None = None, directions: int = 96, max_pixels: int = 512,
-                      predict: bool = True):
+                      predict: bool = True, points: tuple | None = None):
     """Fit a point light to the observed colours `seen` (P, 3) at `fragments` of `batch` (a MeshBatch
     with uvs) seen from `cameras`; returns the colours our shader predicts there (P, 3), differentiable
     w.r.t. the camera through the texture lookup (the light is held fixed), and the fit itself
@@ -82,15 +82,19 @@ def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: tor
     centres (e.g. an antialiased unlit render, to match an antialiased picture); `fit_on` (P,) bool
     limits the fit to some pixels (the prediction covers all); `directions` and `max_pixels` are
     `fit_point_light`'s (a coarser, cheaper fit where only a ranking needs it); `predict` False skips
-    the prediction (None in its place) where only the fit is wanted."""
+    the prediction (None in its place) where only the fit is wanted. `points`: `unrender.surface_points`
+    of these fragments, where the caller has them."""
     from .shader import PhongShader
     from .unrender import surface_attributes, surface_points
 
     n_images = fragments.shape[0]
     if albedo is None:
         _, albedo = surface_attributes(batch, fragments)
-    with torch.no_grad():
-        position, normal = surface_points(batch, fragments, cameras)
+    if points is not None:
+        position, normal = points
+    else:
+        with torch.no_grad():
+            position, normal = surface_points(batch, fragments, cameras)
     used = slice(None) if fit_on is None else fit_on
     ambient, lights = fit_point_light(seen[used], albedo[used], position[used], normal[used], fragments.batch[used],
                                       n_images, directions, max_pixels)

@@ -30,6 +30,8 @@ class PhongShader:
         facing = torch.where((normal * to_eye).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(normal.dtype)
         normal = normal * facing
         color = self.k_ambient * ambient * albedo
+        if not bool(light_intensity.any()) and not (torch.is_grad_enabled() and light_intensity.requires_grad):
+            return color  # no light (an unlit albedo render): the light's terms would add exact zeros
         to_light = light_position - position.unsqueeze(1)  # (P, L, 3)
         distance = to_light.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         direction = to_light / distance

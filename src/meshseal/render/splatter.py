@@ -14,6 +14,8 @@ background (alpha = 0) sources; elsewhere (CUDA, other dtypes) it is a torch con
 
 from __future__ import annotations
 
+import functools
+
 import numba
 import numpy as np
 import torch
@@ -21,9 +23,11 @@ import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
 
+@functools.lru_cache(maxsize=16)
 def _kernels(sigma: float, dtype, device) -> torch.Tensor:
     """(3, 3, 3): the normalised Gaussian g and its x- and y-moment kernels g*ox/sigma^2, g*oy/sigma^2,
-    as correlation kernels (flipped offsets), indexed [kind, row, col]."""
+    as correlation kernels (flipped offsets), indexed [kind, row, col]. Made once per sigma, dtype and
+    device (every render asks for them): callers read them and never write."""
     offsets = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)
     oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
     gauss = torch.exp(-(ox ** 2 + oy ** 2) / (2.0 * sigma * sigma))
