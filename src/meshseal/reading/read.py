@@ -4,13 +4,14 @@ that camera; blind methods read the object alone. `second_look` may read a regis
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from ..errors import MeshsealError
-from .framing import box_from_points, boxes_from_mask, inner_picture, object_mask
+from .framing import box_from_points, boxes_from_mask, estimate_background, inner_picture, object_mask
 from .pictures import camera_from_metadata, load_picture_and_codecs, picture_name
 
 MIN_OBJECT_PIXELS = 64  # fewer object pixels than this: nothing to read
@@ -30,7 +31,25 @@ class Reading:
     found: object = None  # the Cameras used to un-render (informed methods)
     tries: int = 1  # what the decision multiplies the p-value by for the cameras a second look could try
     second_look: tuple = ()  # registered: (picture, mask, Registration.alternatives), until `second_look.look_again`
-    object_mask: torch.Tensor | None = None  # camera from metadata: the picture's object (H, W) bool, for `why_not`
+    object_mask_of: Callable[[], torch.Tensor] | None = None  # camera from metadata: makes `object_mask`
+
+    @property
+    def object_mask(self) -> torch.Tensor | None:
+        """Camera from metadata: the picture's object (H, W) bool, for `why_not` (made when asked: a
+        picture whose mark is found never needs it)."""
+        return None if self.object_mask_of is None else self.object_mask_of()
+
+
+CLEARLY_NOT_EMPTY = 4 * MIN_OBJECT_PIXELS  # pixels off the border's colour that make a picture clearly not empty
+
+
+def clearly_not_empty(pixels: np.ndarray, threshold: float = 0.03) -> bool:
+    """Whether a picture (H, W, 3) clearly shows something: CLEARLY_NOT_EMPTY pixels or more differ
+    from the median colour of its border by over `threshold` in some channel. A cheap look, for a
+    reading whose camera is known (it needs no object mask); a picture it does not clear gets
+    `framing.object_mask`'s count, as every registered picture does."""
+    off = np.abs(pixels - estimate_background(pixels)).max(-1) > threshold
+    return int(np.count_nonzero(off)) >= CLEARLY_NOT_EMPTY
 
 
 def registration_factor(mask: np.ndarray) -> int:
@@ -96,8 +115,11 @@ class Reader:
                 top, bottom, left, right = inner
                 pixels = np.ascontiguousarray(pixels[top:bottom, left:right])
                 codecs, luma = None, None  # its blocks no longer lie on the file's 8x8 grid
-            mask, background = object_mask(pixels, trim=not (given or from_metadata))
-        if int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
+            if (given or from_metadata) and clearly_not_empty(pixels):
+                mask, background = None, None  # the camera says where the object is; the mask only if asked
+            else:
+                mask, background = object_mask(pixels, trim=not (given or from_metadata))
+        if mask is not None and int(mask.sum()) < MIN_OBJECT_PIXELS:  # answer at once rather than search an empty picture
             what = "transparent, or nearly" if alpha is not None else "one plain colour, or nearly"
             raise MeshsealError(f"{picture_name(image)}: no object found (the picture is {what})")
         tensor = torch.from_numpy(np.ascontiguousarray(pixels)).permute(2, 0, 1)[None].to(self.device)
@@ -111,8 +133,11 @@ class Reader:
             box = tuple(float(v) for v in box_from_points(corners.reshape(-1, 2), height, width)[0])
             evidence = self.method.evidence(original, self._expect_codecs(tensor.clamp(0, 1), codecs, luma), camera)
             if from_metadata:  # kept for `why_not`: does the picture show this mesh where its camera says?
-                return Reading(evidence, box, "metadata", None, camera,
-                               object_mask=torch.from_numpy(np.ascontiguousarray(mask > 0.5)))
+                def object_mask_of(mask=mask, pixels=pixels):
+                    found = mask if mask is not None else object_mask(pixels, trim=False)[0]
+                    return torch.from_numpy(np.ascontiguousarray(found > 0.5))
+
+                return Reading(evidence, box, "metadata", None, camera, object_mask_of=object_mask_of)
             return Reading(evidence, box, "given", None, camera)
         background_tensor = torch.tensor(background, dtype=tensor.dtype)
         if original is None:

@@ -102,6 +102,21 @@ def per_fragment(table: torch.Tensor, fragments: Fragments) -> torch.Tensor:
     return table[fragments.batch, fragments.face]
 
 
+def splat_positions(fragments: Fragments) -> torch.Tensor:
+    """Where each pixel's colour is splatted (B, H, W, 2): the surface point's screen position,
+    barycentrics held fixed (see splatter). Background pixels have alpha 0 and splat nothing, so their
+    positions are never read. Kept on fragments whose corners carry no gradient (renders of one
+    rasterization under other lights, as the reading makes, share them)."""
+    cached = getattr(fragments, "_splat_positions", None)
+    if cached is not None:
+        return cached
+    surface_xy = (fragments.corners_xy * fragments.screen_bary.detach().unsqueeze(-1)).sum(1)
+    positions = scatter_to_image(surface_xy, fragments, 0.0)
+    if not fragments.corners_xy.requires_grad:  # no render of these fragments can want their gradient
+        fragments._splat_positions = positions
+    return positions
+
+
 @dataclass
 class MeshRenderer:
     """Composes the rasterizer and the Phong shader; `blend` is 'splat' (differentiable silhouettes,
@@ -133,11 +148,7 @@ class MeshRenderer:
             return RenderOutput(torch.cat([color, alpha.unsqueeze(-1)], dim=-1), fragments)
         from .splatter import splat
 
-        # Splat positions: the surface point's screen position, barycentrics held fixed (see splatter).
-        # (Background pixels have alpha 0 and splat nothing, so their positions are never read.)
-        surface_xy = (fragments.corners_xy * fragments.screen_bary.detach().unsqueeze(-1)).sum(1)
-        splat_xy = scatter_to_image(surface_xy, fragments, 0.0)
-        image, coverage = splat(color, alpha, splat_xy, background, self.sigma)
+        image, coverage = splat(color, alpha, splat_positions(fragments), background, self.sigma)
         return RenderOutput(torch.cat([image, coverage.unsqueeze(-1)], dim=-1), fragments)
 
     def shade(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, fragments: Fragments,
