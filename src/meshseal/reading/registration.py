@@ -425,7 +425,7 @@ def _refine_silhouettes(mesh: MeshBatch, start: Cameras, level, sigma: float, it
     iteration costs one hard render and no backward pass; a camera whose step does not lower its cost
     keeps its pose and damps harder (Levenberg-Marquardt). A camera stops once its step is under
     `done_step` pixels (SILHOUETTE_DONE by default) at a damping of at most FREEZE_DAMPING."""
-    from ..imaging import gaussian_blur
+    from ..render.blur import gaussian_blur  # compiled on the CPU where no gradient flows: the same bits
 
     _, target_mask, inside = level
     size = target_mask.shape[-1]
@@ -624,7 +624,8 @@ def _band_pass(inside: torch.Tensor, sigma: float, wide: float | None = None):
     only (normalised blurs, so the silhouette's edge leaks nothing in). The blurs run on the box around
     the inside pixels that the wider one reaches (the rest of the frame, zero, is the same as the whole
     frame would give there), and the blurred weights once."""
-    from ..imaging import blur_radius, gaussian_blur
+    from ..imaging import blur_radius
+    from ..render.blur import gaussian_blur  # compiled on the CPU where no gradient flows: the same bits
 
     wide = LOWPASS * max(sigma, 1.0) if wide is None else wide
     reach = blur_radius(wide)
