@@ -48,7 +48,12 @@ def clearly_not_empty(pixels: np.ndarray, threshold: float = 0.03) -> bool:
     from the median colour of its border by over `threshold` in some channel. A cheap look, for a
     reading whose camera is known (it needs no object mask); a picture it does not clear gets
     `framing.object_mask`'s count, as every registered picture does."""
-    off = np.abs(pixels - estimate_background(pixels)).max(-1) > threshold
+    background = estimate_background(pixels)
+    low, high = background - threshold, background + threshold
+    off = np.zeros(pixels.shape[:2], dtype=bool)
+    for channel in range(pixels.shape[-1]):  # channel by channel: a reduction over a last axis of 3 costs ten times
+        plane = pixels[..., channel]
+        off |= (plane < low[channel]) | (plane > high[channel])
     return int(np.count_nonzero(off)) >= CLEARLY_NOT_EMPTY
 
 
