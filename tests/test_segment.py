@@ -170,3 +170,23 @@ def test_a_picture_pasted_into_a_screenshot_is_found_and_a_plain_picture_is_left
     box = np.full((120, 160, 3), 0.9, dtype=np.float32)
     box[20:100, 30:130] = 0.3  # a plain rectangle on a plain background: nothing inside it
     assert inner_picture(box) is None
+
+
+def test_a_camera_known_readings_object_mask_is_made_when_asked_and_pickles_as_the_mask():
+    """A picture whose camera is known keeps its pixels for `why_not` instead of a mask it rarely needs
+    (`reading.read.ObjectMask`): asked, it is `framing.object_mask` untrimmed; pickled (a worker's
+    reading sent back), it travels as that mask, not as a closure or the pixels. `clearly_not_empty`
+    passes a picture with a few hundred pixels off its border's colour and not a plain one."""
+    import pickle
+
+    from meshseal.reading.read import CLEARLY_NOT_EMPTY, ObjectMask, clearly_not_empty
+
+    picture = np.full((64, 64, 3), 0.5, dtype=np.float32)
+    assert not clearly_not_empty(picture)
+    picture[10:40, 12:44] = (0.9, 0.2, 0.1)
+    assert clearly_not_empty(picture) and 30 * 32 >= CLEARLY_NOT_EMPTY
+    expected = torch.from_numpy(object_mask(picture, trim=False)[0] > 0.5)
+    lazy = ObjectMask(picture)
+    sent = pickle.loads(pickle.dumps(lazy))
+    assert sent._pixels is None and torch.equal(sent(), expected)
+    assert torch.equal(lazy(), expected) and int(expected.sum()) == 30 * 32 - 4  # the opening takes the corners

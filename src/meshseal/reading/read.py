@@ -40,6 +40,26 @@ class Reading:
         return None if self.object_mask_of is None else self.object_mask_of()
 
 
+class ObjectMask:
+    """A picture's object (H, W) bool tensor (`framing.object_mask`, untrimmed), made on the first call
+    from the picture's pixels (H, W, 3) unless given as `mask`. Pickled (a worker's reading sent back)
+    as the mask itself, made then."""
+
+    def __init__(self, pixels: np.ndarray | None, mask: np.ndarray | None = None):
+        self._pixels = pixels
+        self._mask = None if mask is None else np.ascontiguousarray(mask > 0.5)
+
+    def __call__(self) -> torch.Tensor:
+        if self._mask is None:
+            self._mask = np.ascontiguousarray(object_mask(self._pixels, trim=False)[0] > 0.5)
+            self._pixels = None
+        return torch.from_numpy(self._mask)
+
+    def __getstate__(self) -> dict:
+        self()
+        return {"_pixels": None, "_mask": self._mask}
+
+
 CLEARLY_NOT_EMPTY = 4 * MIN_OBJECT_PIXELS  # pixels off the border's colour that make a picture clearly not empty
 
 
@@ -138,11 +158,7 @@ class Reader:
             box = tuple(float(v) for v in box_from_points(corners.reshape(-1, 2), height, width)[0])
             evidence = self.method.evidence(original, self._expect_codecs(tensor.clamp(0, 1), codecs, luma), camera)
             if from_metadata:  # kept for `why_not`: does the picture show this mesh where its camera says?
-                def object_mask_of(mask=mask, pixels=pixels):
-                    found = mask if mask is not None else object_mask(pixels, trim=False)[0]
-                    return torch.from_numpy(np.ascontiguousarray(found > 0.5))
-
-                return Reading(evidence, box, "metadata", None, camera, object_mask_of=object_mask_of)
+                return Reading(evidence, box, "metadata", None, camera, object_mask_of=ObjectMask(pixels, mask))
             return Reading(evidence, box, "given", None, camera)
         background_tensor = torch.tensor(background, dtype=tensor.dtype)
         if original is None:
