@@ -22,7 +22,7 @@ attack `texture_half` of `evaluation.asset_attacks` is made of the same `resized
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
