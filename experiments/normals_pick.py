@@ -9,6 +9,11 @@ taken on the same relit residual; the run prints the pictures where they differ,
 the milliseconds each took.
 
     python experiments/normals_pick.py --data data --meshes 80
+    python experiments/normals_pick.py --data data --meshes 60 --picture-log obj_glb
+
+`--picture-log ATTACKS` takes both decisions inside `experiments/picture_log.py`'s reading instead (its
+pictures: full strength, its views and backgrounds; the shading change's decision is the one used) and
+counts the calls where they differ.
 """
 
 from __future__ import annotations
@@ -44,11 +49,41 @@ def rendered_decision(found, normals: torch.Tensor, cameras, shape: tuple[int, i
     return imports._detail(found.seen - expected, pixel, shape) < imports.PICK_BELOW * given
 
 
+def through_picture_log(data: Path, meshes: int, attacks: str) -> None:
+    """Both decisions on every call `experiments/picture_log.py` makes, the shading change's used."""
+    import runpy
+    import sys
+    import tempfile
+
+    shading = imports.pick_normals
+    calls = {"made": 0, "differ": 0}
+
+    def both(found, normals, cameras, shape):
+        rendered, used = rendered_decision(found, normals, cameras, shape), shading(found, normals, cameras, shape)
+        calls["made"] += 1
+        if rendered != used:
+            calls["differ"] += 1
+            print(f"call {calls['made']}: rendered {rendered}, shading change {used} ({len(found.keep)} pixels)", flush=True)
+        return used
+
+    imports.pick_normals = both
+    with tempfile.TemporaryDirectory() as folder:
+        sys.argv = ["picture_log.py", "--data", str(data), "--meshes", str(meshes), "--attacks", attacks,
+                    "--out", str(Path(folder) / "log.jsonl")]
+        runpy.run_path(str(Path(__file__).with_name("picture_log.py")), run_name="__main__")
+    print(f"{calls['made']} normals decisions in picture_log's reading (first {meshes} test meshes, PNG and {attacks}): "
+          f"{calls['differ']} differ")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--meshes", type=int, default=80)
+    parser.add_argument("--picture-log", metavar="ATTACKS", help="take both decisions in picture_log.py's reading")
     args = parser.parse_args()
+    if args.picture_log:
+        through_picture_log(args.data, args.meshes, args.picture_log)
+        return
     wm = meshseal.load("default", "cpu")
     dataset = MeshDataset(args.data, "test", seed=0)
     shape = (1, 256, 256)
