@@ -305,12 +305,19 @@ def within_reach(pixel: torch.Tensor, shape: tuple[int, int, int], reach: int):
     if len(pixel) == 0:
         return pixel, shape, (0, 0)
     n_images, height, width = shape
-    within = pixel % (height * width)
-    row, column = torch.div(within, width, rounding_mode="floor"), within % width
-    top, left = max(int(row.min()) - reach, 0), max(int(column.min()) - reach, 0)
-    bottom, right = min(int(row.max()) + reach + 1, height), min(int(column.max()) + reach + 1, width)
-    image = torch.div(pixel, height * width, rounding_mode="floor")
+    if n_images == 1:  # one picture (every reading): one integer division, not three
+        row = torch.div(pixel, width, rounding_mode="floor")
+        column = pixel - row * width
+    else:
+        within = pixel % (height * width)
+        row, column = torch.div(within, width, rounding_mode="floor"), within % width
+    (row_low, row_high), (column_low, column_high) = torch.aminmax(row), torch.aminmax(column)
+    top, left = max(int(row_low) - reach, 0), max(int(column_low) - reach, 0)
+    bottom, right = min(int(row_high) + reach + 1, height), min(int(column_high) + reach + 1, width)
     rows, columns = bottom - top, right - left
+    if n_images == 1:
+        return (row - top) * columns + (column - left), (n_images, rows, columns), (top, left)
+    image = torch.div(pixel, height * width, rounding_mode="floor")
     return (image * rows + row - top) * columns + column - left, (n_images, rows, columns), (top, left)
 
 
@@ -329,6 +336,9 @@ def whiten(projected: torch.Tensor, pixel: torch.Tensor, shape: tuple[int, int, 
     if window is None:
         return detail
     variance = local_mean(detail * detail, pixel, shape, window)
+    if shape[0] == 1:  # one picture: its median
+        least = floor * variance.median().clamp_min(1e-12)
+        return detail / torch.maximum(variance, least)
     image = pixel // (shape[1] * shape[2])
     least = torch.zeros_like(variance)
     for index in torch.unique(image).tolist():  # each picture's own median
