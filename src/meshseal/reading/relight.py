@@ -76,6 +76,7 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
     few tenths of a unit off barely moves, and on a picture lit as no point light lights it (Blender's
     Workbench studio light) a polished light can pull its camera off."""
     from ..render import rasterize
+    from ..render.unrender import facing_camera
 
     n_images, height, width = len(cameras), image.shape[-2], image.shape[-1]
     unlit = replace(mesh, ambient=torch.full_like(mesh.ambient, 1.0 / K_AMBIENT))
@@ -91,10 +92,7 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
     fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
     seen = pixels_at(image, fragments)
     # the surface points and camera-facing unit normals (`unrender.surface_points`), from the surface's
-    world, normal = surface[0], surface[1]
-    unit = F.normalize(normal, dim=-1, eps=1e-12)
-    toward = on.eye.index_select(0, fragments.batch) - world
-    points = (world, torch.where((unit * toward).sum(-1, keepdim=True) < 0, -unit, unit))
+    points = (surface[0], facing_camera(surface[0], surface[1], on, fragments))
     _, ambient, lights = relight_fragments(mesh, fragments, cameras, seen, albedo, fit_on, predict=False, points=points)
     if polish:
         inside = pixels_at(flat.rgba[..., 3:].permute(0, 3, 1, 2), fragments)[:, 0] > 0.999
@@ -131,8 +129,6 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
     and `albedo` (P, 3) at the fragments; `shape` (B, H, W) of the pictures; `unit` (P, 3): the surface's
     unit normals facing the camera, where the caller has them. Looks at the picture and the
     original only. Returns ambient (B, 3) and PointLights, as `fit_point_light` does."""
-    import torch.nn.functional as F
-
     from ..models.spread import within_reach
     from ..render.lighting import attenuation
     from ..render.splatter import _kernels
@@ -146,9 +142,9 @@ def splat_polished_light(fragments, surface: tuple, cameras: Cameras, seen: torc
     samplings = (gaussian, torch.zeros_like(gaussian).index_fill_(0, torch.tensor([4], device=gaussian.device), 1.0))
     offsets = torch.tensor([dy * columns + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=local.device)
     if unit is None:
-        unit = F.normalize(normal, dim=-1, eps=1e-12)
-        eye = cameras.eye.to(world).index_select(0, fragments.batch)
-        unit = torch.where((unit * (eye - world)).sum(-1, keepdim=True) < 0, -unit, unit)
+        from ..render.unrender import facing_camera
+
+        unit = facing_camera(world, normal, cameras, fragments)
     ambient, position, intensity = ambient.clone(), lights.position.clone(), lights.intensity.clone()
     for index in range(shape[0]):
         chosen = torch.nonzero(fragments.batch == index).squeeze(1)

@@ -48,9 +48,15 @@ def surface_points(batch, fragments: Fragments, cameras: Cameras) -> tuple[torch
     n_batch = fragments.shape[0]
     expand = lambda table: table.expand(n_batch, -1, -1) if table.shape[0] == 1 else table  # noqa: E731
     values = interpolate(torch.cat([expand(batch.positions), expand(batch.normals)], dim=-1), fragments)
-    normal = torch.nn.functional.normalize(values[:, 3:], dim=-1)
-    view = cameras.eye.to(values).index_select(0, fragments.batch) - values[:, :3]
-    return values[:, :3], torch.where((normal * view).sum(-1, keepdim=True) < 0, -normal, normal)
+    return values[:, :3], facing_camera(values[:, :3], values[:, 3:], cameras, fragments)
+
+
+def facing_camera(position: torch.Tensor, normal: torch.Tensor, cameras: Cameras, fragments: Fragments) -> torch.Tensor:
+    """Normals (P, 3) at the fragments' surface points (P, 3) made unit and flipped to face the camera
+    (two-sided shading)."""
+    unit = torch.nn.functional.normalize(normal, dim=-1)
+    view = cameras.eye.to(position).index_select(0, fragments.batch) - position
+    return torch.where((unit * view).sum(-1, keepdim=True) < 0, -unit, unit)
 
 
 def unrender(values: torch.Tensor, uv: torch.Tensor, image_index: torch.Tensor, n_images: int, grid: int) -> torch.Tensor:
