@@ -3,7 +3,7 @@ texture PSNRs, and the default's blue-yellow mark beside it, read the same way.
 
 Each mark is built from configs/robust.yaml with `mark_colour` and `texture_psnr` changed (nothing is
 learned), then `meshseal eval --attacks` runs in-process: the first N test meshes, one seeded 256^2 view
-each, marked at full strength (no FLIP budget, so that the strength is the one named), saved as 8-bit
+each (`--views`), marked at full strength (no FLIP budget, so that the strength is the one named), saved as 8-bit
 PNG, attacked, read with the camera known. One Markdown table row per mark: object FLIP and PSNR, then
 detected / exact message per attack at FPR 1e-6.
 
@@ -34,6 +34,7 @@ def main() -> None:
     parser.add_argument("--meshes", type=int, default=30)
     parser.add_argument("--start", type=int, default=0, help="the first test mesh (default 0)")
     parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--views", type=int, default=1, help="seeded views of each mesh (default 1)")
     parser.add_argument("--psnr", type=float, nargs="+", default=[40.0, 37.0, 34.0, 31.0])
     parser.add_argument("--colours", nargs="+", default=["grey", "blue-yellow"])
     parser.add_argument("--attacks", default="none,jpeg90,jpeg75,jpeg50,webp80")
@@ -75,7 +76,7 @@ def main() -> None:
             started = time.time()
             torch.manual_seed(0)
             model = WatermarkModel(ModelConfig.from_dict(base | {"mark_colour": colour, "texture_psnr": psnr}))
-            m = evaluate_registered(model, dataset, args.meshes, 0, args.size, "seed", None, views=1, register=False,
+            m = evaluate_registered(model, dataset, args.meshes, 0, args.size, "seed", None, views=args.views, register=False,
                                     max_flip=None, attacks=attacks)
             cells = " | ".join(f"{m['attacks'][a]['detected']:.2f} / {m['attacks'][a]['exact']:.2f}" for a in attacks)
             print(f"| {colour} | {psnr:g} | {m['flip_object']:.4f} / {m['flip_object_p95']:.4f} | {m['psnr_object']:.2f} | "

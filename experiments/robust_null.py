@@ -6,6 +6,7 @@ larger: reports per attack the pictures, how many reach the FPR 1e-6 threshold, 
 the share under 0.01 and 0.1, and a Kolmogorov-Smirnov p-value against uniform.
 
     python experiments/robust_null.py --data data --meshes 200 [--start 0] [--views 1] [--model robust] [--json OUT] [--register]
+        [--fine-grid]   (only the meshes read on the model's fine grid: magnified textures)
     python experiments/robust_null.py --merge A.json B.json ...   # one table over runs' --json files (e.g. halves of the split)
 """
 
@@ -67,6 +68,8 @@ def main() -> None:
     parser.add_argument("--model", default="robust")
     parser.add_argument("--attacks", default="none,jpeg95,jpeg90,jpeg75,jpeg50,webp80,brightness,noise2")
     parser.add_argument("--json", type=Path, help="also write every p-value here (per attack)")
+    parser.add_argument("--fine-grid", action="store_true",
+                        help="only the meshes whose reading takes the model's fine grid (magnified textures)")
     parser.add_argument("--register", action="store_true",
                         help="read without the camera, as `meshseal detect` reads a picture without metadata")
     args = parser.parse_args()
@@ -86,6 +89,9 @@ def main() -> None:
         original = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces", "texture")))
         cameras, lights = sample_views(args.views, "seed", generator)
         backgrounds = random_backgrounds(args.views, generator)
+        if args.fine_grid and watermarker.method.encoder.fine_chips not in watermarker.method.grids_to_read(
+                watermarker.original(original)):
+            continue
         as_bytes = lambda image: (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         with torch.no_grad():
             pictures = MeshRenderer()(original, cameras, lights, 256, 256, backgrounds).image

@@ -1087,3 +1087,26 @@ def test_a_wide_pilot_keeps_an_exact_null_where_neighbouring_cells_read_alike():
     _, sign = encoder.pattern(method.key_seed("k"), 64)
     marked = (0.3 * sign * (encoder.pattern(method.key_seed("k"), 64)[0] == 64) + torch.randn(4096, generator=generator))
     assert method.pilot_pvalue(marked[None].double(), "k") < 1e-6
+
+
+def test_a_pilot_chips_grid_puts_a_finer_grids_pilot_on_blocks_and_leaves_coarser_grids_alone():
+    """`pilot_chips` 128: on the 512^2 grid of a magnified texture the pilot's signs lie on 4 x 4 blocks
+    of cells (a 128^2 grid of signs, which a codec keeps more of), each block all pilot or none; the 64^2
+    grid keeps its single-cell pilot, drawn as without the setting, so marks on it read as before."""
+    from meshseal.models.spread import SpreadSpectrumEncoder
+
+    plain = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, pilot_share=0.5, fine_chips=512)
+    capped = SpreadSpectrumEncoder(64, chips=64, colour="grey", seed=0, pilot_share=0.5, fine_chips=512, pilot_chips=128)
+    assert capped.pilot_width(64) == 1 and capped.pilot_width(128) == 1 and capped.pilot_width(512) == 4
+    for key_seed in (None, 777):
+        assert all(torch.equal(a, b) for a, b in zip(plain.pattern(key_seed, 64), capped.pattern(key_seed, 64)))
+        assign, sign = capped.pattern(key_seed, 512)
+        counts = torch.bincount(assign, minlength=65)
+        assert int(counts[64]) == 512 * 512 // 2 and (counts[:64] == 2048).all()
+        blocks = (assign == 64).reshape(128, 4, 128, 4).permute(0, 2, 1, 3).reshape(128, 128, 16)
+        assert torch.equal(blocks.all(2), blocks.any(2))
+        signs = sign.reshape(128, 4, 128, 4).permute(0, 2, 1, 3).reshape(128, 128, 16)[blocks.all(2)]
+        assert (signs == signs[:, :1]).all() and 0.45 < float((signs[:, 0] > 0).float().mean()) < 0.55
+    config = ModelConfig.from_dict({"n_bits": 64, "texture_encoder": "spread", "chips": 64, "pilot_share": 0.5,
+                                    "fine_chips": 512, "pilot_chips": 128})
+    assert WatermarkModel(config).texture_encoder.pilot_width(512) == 4

@@ -23,10 +23,12 @@ from .reading.second_look import look_again
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 DEFAULT_MODEL = "default"
 SHOWS_MESH_BELOW = 0.8  # `why_not`: an object overlapping the original's silhouette less than this may be another mesh
-# `why_not`: the default's marks made before it took a pilot are the `dense` model's, and those made before it
-# moved to 64^2 cells (f70e3d2) the `fine` model's; a picture the default reads nothing in is read again by
-# each under the same camera, in this order. What each note says of the model.
-PREVIOUS_DEFAULTS = {"dense": "the default before it took a pilot", "fine": "the default before it moved to 64^2 cells"}
+# `why_not`: the default's marks made before its pilot took blocks of cells are the `cell_pilot` model's, those
+# made before it took a pilot the `dense` model's, and those made before it moved to 64^2 cells (f70e3d2) the
+# `fine` model's; a picture the default reads nothing in is read again by each under the same camera, in this
+# order. What each note says of the model.
+PREVIOUS_DEFAULTS = {"cell_pilot": "the default before its pilot took blocks of cells",
+                     "dense": "the default before it took a pilot", "fine": "the default before it moved to 64^2 cells"}
 
 
 def shipped_models() -> list[dict]:

@@ -203,13 +203,16 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, grids)
 
 
+OWN_MARK_SCALES = (0.5, 1.0)  # `own_mark_pvalue`'s whitening windows, in cells (docs/payload.md: measured against (2.0,))
+
+
 class SpreadMethod(Method):
     """The keyed spread-spectrum mark and its matched filter."""
 
     name = "spread"
     params_named = ("n_bits", "chips", "coarse_chips", "coarse_below", "fine_chips", "fine_above", "mark_colour",
                     "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "pilot_share",
-                    "pilot_block", "pilot_gain", "read_highpass",
+                    "pilot_block", "pilot_chips", "pilot_gain", "read_highpass",
                     "read_window", "read_brightness", "read_affine", "read_imports")
     informed = True
     calibrated = True
@@ -235,6 +238,9 @@ class SpreadMethod(Method):
         share = config.get("pilot_share", 0.0)
         wide = config.get("pilot_block", 1)
         blocks = f" on {wide} x {wide} blocks of cells of one sign" if wide > 1 else ""
+        capped = config.get("pilot_chips", 0)
+        blocks += (f" (on a finer grid than {capped}^2, on blocks of cells as wide as a {capped}^2 grid's, one sign "
+                   "each)" if capped else "")
         gain = config.get("pilot_gain", 1.0)
         blocks += f" at {gain:g} of the message's amplitude" if gain != 1.0 else ""
         pilot_text = (f"{share:.0%} of them a pilot{blocks} carrying the key's own signs (a presence test whatever the message, "
@@ -396,7 +402,10 @@ class SpreadMethod(Method):
                 continue
             texture = texture[None] if texture.dim() == 3 else texture[:1]  # (1, 3, H, W)
             used = texels_used(original.uvs[0], faces[material == index], *texture.shape[-2:])
-            sums = texture_cell_sums(self.encoder, texture, used, grids)
+            # Two whitening windows, half a cell and a cell: the host texture leaves less in the first, the mark
+            # more in the second; each scaled to unit RMS, their sum is one fixed function of the texture.
+            sums = sum(part / part.pow(2).mean().sqrt().clamp_min(1e-30)
+                       for part in (texture_cell_sums(self.encoder, texture, used, grids, scale) for scale in OWN_MARK_SCALES))
             total = sums if total is None else total + sums
         if total is None:
             return None

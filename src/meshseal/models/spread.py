@@ -85,7 +85,7 @@ class SpreadSpectrumEncoder(nn.Module):
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
                  fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0,
-                 pilot_block: int = 1, pilot_gain: float = 1.0):
+                 pilot_block: int = 1, pilot_gain: float = 1.0, pilot_chips: int = 0):
         super().__init__()
         if not 0.0 <= pilot_share < 1.0:
             raise ValueError("the pilot's share of the cells must be in [0, 1)")
@@ -95,7 +95,7 @@ class SpreadSpectrumEncoder(nn.Module):
         self.n_bits, self.chips, self.texture_psnr, self.window, self.floor = n_bits, chips, texture_psnr, window, floor
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
         self.fine_chips, self.fine_above, self.block, self.pilot_block = fine_chips, fine_above, block, pilot_block
-        self.pilot_gain = pilot_gain
+        self.pilot_gain, self.pilot_chips = pilot_gain, pilot_chips
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
@@ -150,8 +150,10 @@ class SpreadSpectrumEncoder(nn.Module):
         return assign, torch.randint(0, 2, (cells,), generator=generator).float() * 2 - 1
 
     def pilot_width(self, chips: int) -> int:
-        """Cells per side of the pilot's blocks of one sign on a chips x chips grid (1: single cells)."""
-        return self.pilot_block if self.pilot_block > 1 and self.pilot_slots and chips % self.pilot_block == 0 else 1
+        """Cells per side of the pilot's blocks of one sign on a chips x chips grid (1: single cells):
+        `pilot_block`, or more on a grid finer than `pilot_chips`, whose pilot takes that grid's signs."""
+        wide = max(self.pilot_block, chips // self.pilot_chips if self.pilot_chips else 1)
+        return wide if wide > 1 and self.pilot_slots and chips % wide == 0 else 1
 
     def pattern(self, key_seed: int | None = None, chips: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The cell-to-bit assignment (C*C,) and cell signs (C*C,) of a chips x chips grid (the model's
@@ -372,16 +374,16 @@ def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch
 
 
 def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, used: torch.Tensor,
-                      grids: tuple[int, ...]) -> torch.Tensor:
+                      grids: tuple[int, ...], scale: float = 1.0) -> torch.Tensor:
     """The matched filter's evidence per cell (1, sum C*C) read from a texture (1, 3, H, W) itself, with
     no original to subtract: the texels `used` (H, W), projected on the mark's colour, with the
-    texture's slow content taken off and its local variance divided out at the scale of two cells
-    (`whiten` in texture space), weighted by the mark's amplitude and accumulated into each grid's
+    texture's slow content taken off and its local variance divided out over a Gaussian window of
+    `scale` cells (`whiten` in texture space), weighted by the mark's amplitude and accumulated into each grid's
     cells as `cell_sums` does. The host texture stays in the sums as noise, but every step depends on
     the texture alone, never on a key's signs: `soft_bits` / `bit_weights` of these sums keep the exact
     null of an unmarked texture (`payload.detection_pvalue`), so a texture that reads as marked under
     a key carries that key's mark. Used to tell a user that the mesh given as the original is itself
-    marked."""
+    marked. `scale`: the whitening's window (sigma), in cells of each grid."""
     from ..imaging import gaussian_blur
 
     height, width = texture.shape[-2:]
@@ -392,9 +394,9 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
     image_index = torch.zeros(len(rows), dtype=torch.long, device=texture.device)
     sums = []
     for chips in grids:
-        # Two cells' width in texels: the mark varies between cell centres, so a window of one cell
-        # takes much of it off with the host's slow content.
-        sigma = max(2.0 * width / chips, 1.0)
+        # The mark varies between cell centres: a window much narrower than a cell takes much of it off
+        # with the host's content, a much wider one leaves more of the host (`OWN_MARK_SCALES`).
+        sigma = max(scale * width / chips, 1.0)
         detail = projected - gaussian_blur(projected, sigma)
         variance = gaussian_blur(detail * detail, sigma)
         variance = torch.maximum(variance, 0.05 * variance.median().clamp_min(1e-12))

@@ -46,6 +46,7 @@ class ModelConfig:
     pattern_seed: int = 0  # spread: seed of the cell-to-bit assignment and the cell signs
     bit_block: int = 1  # spread: cells given to a bit together, bit_block x bit_block (each its own sign)
     pilot_block: int = 1  # spread: the pilot's cells in pilot_block x pilot_block blocks of one sign (a wider pilot)
+    pilot_chips: int = 0  # spread: the finest grid the pilot's signs take (a finer grid puts them on blocks of its cells; 0: every grid's own cells)
     pilot_gain: float = 1.0  # spread: the pilot's cells' amplitude against the message's (before the mark is scaled to its PSNR)
     pilot_share: float = 0.0  # spread: the share of the cells that carry the key's own signs, not the message (a presence test)
     read_highpass: float = 1.5  # spread reading: the residual's slow part taken off (Gaussian sigma, px; `models.spread.whiten`)
@@ -108,7 +109,8 @@ class WatermarkModel(nn.Module):
                                                              config.activity_window, config.activity_floor,
                                                              config.pattern_seed, config.coarse_chips, config.coarse_below,
                                                              config.fine_chips, config.fine_above, config.bit_block,
-                                                             config.pilot_share, config.pilot_block, config.pilot_gain)
+                                                             config.pilot_share, config.pilot_block, config.pilot_gain,
+                                                             config.pilot_chips)
             elif config.texture_encoder == "surface":
                 self.texture_encoder = SurfaceCodeEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
                                                           config.activity_window, config.activity_floor,
