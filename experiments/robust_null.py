@@ -42,6 +42,9 @@ def table(p_values: dict[str, list[float]]) -> None:
     rows = [*p_values.items(), ("all", [v for values in p_values.values() for v in values])]
     for name, values in rows:
         values = np.array(values)
+        if len(values) == 0:  # no picture read (say, no mesh of --fine-grid among those given)
+            print(f"| {name} | 0 | - | - | - | - | - |")
+            continue
         print(f"| {name} | {len(values)} | {int((values <= payload.FPR).sum())} | {values.min():.2g} | "
               f"{(values < 0.01).mean():.3f} | {(values < 0.1).mean():.3f} | {stats.kstest(values, 'uniform').pvalue:.2g} |")
 
@@ -91,6 +94,9 @@ def main() -> None:
         backgrounds = random_backgrounds(args.views, generator)
         if args.fine_grid and watermarker.method.encoder.fine_chips not in watermarker.method.grids_to_read(
                 watermarker.original(original)):
+            if (index + 1 - args.start) % 25 == 0:
+                print(f"{index + 1} meshes looked at, {sum(map(len, p_values.values()))} pictures, "
+                      f"{time.time() - started:.0f} s", file=sys.stderr, flush=True)
             continue
         as_bytes = lambda image: (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
         with torch.no_grad():
