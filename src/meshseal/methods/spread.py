@@ -403,9 +403,8 @@ class SpreadMethod(Method):
             texture = texture[None] if texture.dim() == 3 else texture[:1]  # (1, 3, H, W)
             used = texels_used(original.uvs[0], faces[material == index], *texture.shape[-2:])
             # Two whitening windows, half a cell and a cell: the host texture leaves less in the first, the mark
-            # more in the second; each scaled to unit RMS, their sum is one fixed function of the texture.
-            sums = sum(part / part.pow(2).mean().sqrt().clamp_min(1e-30)
-                       for part in (texture_cell_sums(self.encoder, texture, used, grids, scale) for scale in OWN_MARK_SCALES))
+            # more in the second.
+            sums = texture_cell_sums(self.encoder, texture, used, grids, OWN_MARK_SCALES)
             total = sums if total is None else total + sums
         if total is None:
             return None

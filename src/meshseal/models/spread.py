@@ -374,7 +374,7 @@ def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch
 
 
 def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, used: torch.Tensor,
-                      grids: tuple[int, ...], scale: float = 1.0) -> torch.Tensor:
+                      grids: tuple[int, ...], scales: tuple[float, ...] = (1.0,)) -> torch.Tensor:
     """The matched filter's evidence per cell (1, sum C*C) read from a texture (1, 3, H, W) itself, with
     no original to subtract: the texels `used` (H, W), projected on the mark's colour, with the
     texture's slow content taken off and its local variance divided out over a Gaussian window of
@@ -383,7 +383,8 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
     the texture alone, never on a key's signs: `soft_bits` / `bit_weights` of these sums keep the exact
     null of an unmarked texture (`payload.detection_pvalue`), so a texture that reads as marked under
     a key carries that key's mark. Used to tell a user that the mesh given as the original is itself
-    marked. `scale`: the whitening's window (sigma), in cells of each grid."""
+    marked. `scales`: the whitening's windows (sigma), in cells of each grid; with several, each
+    window's sums scaled to unit RMS and added (one fixed function of the texture)."""
     from ..imaging import gaussian_blur
 
     height, width = texture.shape[-2:]
@@ -392,17 +393,21 @@ def texture_cell_sums(encoder: SpreadSpectrumEncoder, texture: torch.Tensor, use
     rows, columns = torch.nonzero(used.to(texture.device), as_tuple=True)
     uv = torch.stack([(columns + 0.5) / width, 1.0 - (rows + 0.5) / height], dim=-1).float()
     image_index = torch.zeros(len(rows), dtype=torch.long, device=texture.device)
-    sums = []
-    for chips in grids:
-        # The mark varies between cell centres: a window much narrower than a cell takes much of it off
-        # with the host's content, a much wider one leaves more of the host (`OWN_MARK_SCALES`).
-        sigma = max(scale * width / chips, 1.0)
-        detail = projected - gaussian_blur(projected, sigma)
-        variance = gaussian_blur(detail * detail, sigma)
-        variance = torch.maximum(variance, 0.05 * variance.median().clamp_min(1e-12))
-        values = (detail / variance * amplitude)[0, 0, rows, columns]
-        sums.append(cell_sums(encoder, values, uv, image_index, 1, (chips,)))
-    return torch.cat(sums, dim=1)
+    total = 0.0
+    for scale in scales:
+        sums = []
+        for chips in grids:
+            # The mark varies between cell centres: a window much narrower than a cell takes much of it off
+            # with the host's content, a much wider one leaves more of the host (`OWN_MARK_SCALES`).
+            sigma = max(scale * width / chips, 1.0)
+            detail = projected - gaussian_blur(projected, sigma)
+            variance = gaussian_blur(detail * detail, sigma)
+            variance = torch.maximum(variance, 0.05 * variance.median().clamp_min(1e-12))
+            values = (detail / variance * amplitude)[0, 0, rows, columns]
+            sums.append(cell_sums(encoder, values, uv, image_index, 1, (chips,)))
+        sums = torch.cat(sums, dim=1)
+        total = total + (sums / sums.pow(2).mean().sqrt().clamp_min(1e-30) if len(scales) > 1 else sums)
+    return total
 
 
 def split_grids(encoder: SpreadSpectrumEncoder, sums: torch.Tensor) -> list[torch.Tensor]:
