@@ -336,3 +336,75 @@ def dequantized(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tensor
             continue
         out[mine] = torch.from_numpy(mark.reshape(-1)[(pixel[mine] % (height * width)).cpu().numpy()])
     return out.to(expected)
+
+
+# --- how much of a mark the picture's codec kept, pixel by pixel ----------------------------------------
+#
+# A codec does not keep a faint mark evenly: JPEG and WebP zero the fine detail of flat areas (the mark
+# there is gone, and so is the host's error: the residual is small and its whitening weights it most)
+# and keep it where the texture is busy. The reading can measure this on the prediction itself: a probe
+# mark (fixed signs, never the key's) added to the prediction and saved through the codec the picture was
+# found to be saved with shows, pixel by pixel, how much of a mark of that shape and size comes through
+# the codec and the reading's own estimate; the matched filter then weights each pixel by it.
+
+
+def survival(image: torch.Tensor, before: torch.Tensor, pixel: torch.Tensor, chosen: list, probe: torch.Tensor,
+             colour: torch.Tensor, dequantized_read: torch.Tensor | None, window: float) -> torch.Tensor:
+    """Per object pixel (P,) of pictures `image` (B, 3, H, W) the share of a probe mark `probe` (P,),
+    along `colour` (3,), in [0, 1] units) that the reading gets back through each picture's codec
+    (`chosen`, from `recompressed`), least squares over a Gaussian window (sigma `window` px), in [0, 1];
+    1 for a picture saved losslessly. `before` (P, 3): the prediction before the codec;
+    `dequantized_read` (P,) (NaN where not) says which pixels were read through JPEG's quantiser, and
+    the probe is read the same way there. The probe's signs are fixed, never a key's: the weights are a
+    function of the picture and the original only."""
+    from ..models.spread import local_mean
+
+    n_images, _, height, width = image.shape
+    weight = torch.ones(len(pixel), dtype=probe.dtype)
+    if all(codec is None for codec in chosen):
+        return weight.to(probe)
+    flat = image.detach().permute(0, 2, 3, 1).reshape(-1, 3).cpu().double()
+    canvas = flat.clone()
+    canvas[pixel.cpu()] = before.detach().cpu().double().clamp(0, 1)
+    marked = canvas.clone()
+    colour = colour.reshape(-1).detach().cpu().double()
+    marked[pixel.cpu()] = (canvas[pixel.cpu()] + probe.detach().cpu().double()[:, None] * colour).clamp(0, 1)
+    owner = (pixel // (height * width)).cpu()
+    phases = _known(image, _PHASES) or [(0, 0)] * n_images
+    tables = _luma_tables(image, chosen)
+    got = torch.zeros(len(pixel), dtype=torch.float64)
+    shape = (n_images, height, width, 3)
+    along = _luma_dot(colour)
+    for index, codec in enumerate(chosen):
+        mine = owner == index
+        if codec is None or not bool(mine.any()):
+            continue
+        local = (pixel[mine] % (height * width)).cpu().numpy()
+        plain8 = (canvas.reshape(shape)[index].numpy() * 255).round().astype(np.uint8)
+        probe8 = (marked.reshape(shape)[index].numpy() * 255).round().astype(np.uint8)
+        plain_out = _round_trip_at(plain8, codec, phases[index])
+        probe_out = _round_trip_at(probe8, codec, phases[index])
+        quantiser = dequantized_read is not None and bool((~dequantized_read[mine].isnan()).any()) \
+            and tables[index] is not None
+        if quantiser:
+            inside = np.zeros(height * width, dtype=bool)
+            inside[local] = True
+            inside = inside.reshape(height, width)
+            prediction = canvas.reshape(shape)[index].numpy()
+            a = dequantized_luma(probe_out / 255.0, prediction, tables[index], DEQUANTIZE_SIGMA, inside, phases[index])
+            b = dequantized_luma(plain_out / 255.0, prediction, tables[index], DEQUANTIZE_SIGMA, inside, phases[index])
+            if a is not None and b is not None:
+                got[mine] = torch.from_numpy((a - b).reshape(-1)[local] / along)
+                continue
+        difference = (probe_out.astype(np.float64) - plain_out.astype(np.float64)).reshape(-1, 3)[local] / 255.0
+        got[mine] = torch.from_numpy(difference @ colour.numpy())
+    sent = probe.detach().cpu().double()
+    shape3 = (n_images, height, width)
+    share = local_mean(torch.stack([got * sent, sent * sent], 1), pixel.cpu(), shape3, window)
+    kept = (share[:, 0] / share[:, 1].clamp_min(1e-12)).clamp(0.0, 1.0)
+    lossy = torch.tensor([codec is not None for codec in chosen]).index_select(0, owner)
+    return torch.where(lossy, kept, weight.double()).to(probe)
+
+
+def _luma_dot(colour: torch.Tensor) -> float:
+    return float((colour * torch.tensor(LUMA, dtype=colour.dtype)).sum())
