@@ -182,14 +182,6 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             whitened[usable] = whiten(along[usable], pixel[usable], (n_images, height, width), **options)
         whitened = whitened * gain
         grids = grids or (encoder.chips,)
-        if compression and config.read_survival > 0.0 and any(codec is not None for codec in chosen):
-            from ..reading.compression import survival
-
-            amplitude = sample_textures(masks, found.uv, found.material).norm(dim=1)
-            probe = _probe(found.uv, grids[0]) * amplitude * gain
-            probe = probe * (PROBE_LEVELS / 255.0) / probe.square().mean().sqrt().clamp_min(1e-12)
-            whitened = whitened * survival(image, before, pixel, chosen, probe, colour, dequantized,
-                                           config.read_survival)
         point = torch.ones(n_images, dtype=torch.bool) if sampled is None else sampled.sigma.isnan()
         at_point = point.to(found.image_index.device).index_select(0, found.image_index)
         sums = whitened.new_zeros(n_images, sum(chips ** 2 for chips in grids))
@@ -211,26 +203,6 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, grids)
 
 
-PROBE_LEVELS = 2.55  # the probe mark's RMS over the object, 8-bit levels (a mark at texture PSNR 40 dB)
-PROBE_SEED = 20261130  # the probe's cell signs: fixed, never a key's
-
-
-def _probe(uv: torch.Tensor, cells: int) -> torch.Tensor:
-    """A mark of fixed random cell signs on a `cells`^2 grid at texture coordinates uv (P, 2), bilinear
-    between cell centres as the mark is: the shape of a mark, with no key in it."""
-    signs = torch.randint(0, 2, (cells * cells,), generator=torch.Generator().manual_seed(PROBE_SEED)) * 2.0 - 1.0
-    signs = signs.to(uv)
-    wrapped = uv - torch.floor(uv)
-    x, y = wrapped[:, 0] * cells - 0.5, (1.0 - wrapped[:, 1]) * cells - 0.5
-    x0, y0 = torch.floor(x), torch.floor(y)
-    fx, fy = x - x0, y - y0
-    out = torch.zeros_like(x)
-    for dx, dy, weight in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        cell = ((y0 + dy).long() % cells) * cells + (x0 + dx).long() % cells
-        out = out + weight * signs.index_select(0, cell)
-    return out
-
-
 OWN_MARK_SCALES = (0.5, 1.0)  # `own_mark_pvalue`'s whitening windows, in cells (docs/payload.md: measured against (2.0,))
 
 
@@ -241,7 +213,7 @@ class SpreadMethod(Method):
     params_named = ("n_bits", "chips", "coarse_chips", "coarse_below", "fine_chips", "fine_above", "mark_colour",
                     "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "pilot_share",
                     "pilot_block", "pilot_chips", "pilot_gain", "read_highpass",
-                    "read_window", "read_brightness", "read_affine", "read_survival", "read_imports")
+                    "read_window", "read_brightness", "read_affine", "read_imports")
     informed = True
     calibrated = True
     takes_strength = True

@@ -54,7 +54,6 @@ class ModelConfig:
     read_brightness: float = 0.0  # spread reading: the brightness fit's window (sigma, px; 0: each pixel's own; < 0: none)
     read_affine: float = 0.0  # spread reading without a brightness fit: > 0, the picture fitted as a local affine map of the prediction, per channel (window sigma, px)
     read_colour: str = ""  # spread reading: the colour the residual is read along ('': the mark's own; models.spread.colour_direction)
-    read_survival: float = 0.0  # spread reading of a lossy picture: > 0, each pixel weighted by how much of a probe mark the picture's codec kept there (window sigma, px; `reading.compression.survival`)
     read_imports: bool = False  # spread reading: predict from the original's textures as an asset's import may have changed them (`reading.imports`)
     vertex_encoder: str = "pointnet2"  # pointnet (max pooling) | pointnet2 (average pooling)
     vertex_width: int = 64
