@@ -212,7 +212,7 @@ class SpreadMethod(Method):
     name = "spread"
     params_named = ("n_bits", "chips", "coarse_chips", "coarse_below", "fine_chips", "fine_above", "mark_colour",
                     "texture_psnr", "activity_window", "activity_floor", "pattern_seed", "bit_block", "pilot_share",
-                    "pilot_block", "pilot_chips", "pilot_gain", "pulse", "read_highpass",
+                    "pilot_block", "pilot_chips", "pilot_gain", "read_highpass",
                     "read_window", "read_brightness", "read_affine", "read_imports")
     informed = True
     calibrated = True

@@ -85,9 +85,8 @@ class SpreadSpectrumEncoder(nn.Module):
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
                  fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0,
-                 pilot_block: int = 1, pilot_gain: float = 1.0, pilot_chips: int = 0, pulse: int = 0):
+                 pilot_block: int = 1, pilot_gain: float = 1.0, pilot_chips: int = 0):
         super().__init__()
-        self.pulse = pulse
         if not 0.0 <= pilot_share < 1.0:
             raise ValueError("the pilot's share of the cells must be in [0, 1)")
         # The pilot: cells carrying the key's signs alone (bit index n_bits), `pilot_share` of them, drawn
@@ -210,8 +209,7 @@ class SpreadSpectrumEncoder(nn.Module):
         texels a side than the grid has cells is first resampled up (`carrier`): the marked texture
         is then larger than the one given."""
         texture = carrier(texture, chips or self.chips)
-        pattern = F.interpolate(smoothed_cells(self.cells(message, key_seed, chips).to(texture), self.pulse),
-                                size=texture.shape[-2:],
+        pattern = F.interpolate(self.cells(message, key_seed, chips).to(texture), size=texture.shape[-2:],
                                 mode="bilinear", align_corners=False)
         residual = self.amplitude(texture) * pattern
         share = 1.0
@@ -222,17 +220,6 @@ class SpreadSpectrumEncoder(nn.Module):
         energy = residual.pow(2).mean(dim=(1, 2, 3), keepdim=True) / share
         residual = residual * rms / energy.sqrt().clamp_min(1e-8)
         return (texture + residual).clamp(0.0, 1.0)
-
-
-def smoothed_cells(values: torch.Tensor, passes: int) -> torch.Tensor:
-    """Cell values (B, C, G, G) of a grid smoothed by `passes` binomial (1, 2, 1) / 4 filters along each
-    axis, wrapped as the UV square is (`pulse`): the cell's shape in the texture widened from the tent of
-    the bilinear interpolation between cell centres to a smoother bump. The filter is symmetric, so the
-    same smoothing of a picture's cell sums is the matched filter's template."""
-    for _ in range(passes):
-        values = 0.5 * values + 0.25 * (values.roll(1, -1) + values.roll(-1, -1))
-        values = 0.5 * values + 0.25 * (values.roll(1, -2) + values.roll(-1, -2))
-    return values
 
 
 def texels_used(uvs: torch.Tensor, faces: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -383,8 +370,6 @@ def cell_sums(encoder: SpreadSpectrumEncoder, projected: torch.Tensor, uv: torch
     for dx, dy, weight in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
         cell = ((y0 + dy).long() % cells) * cells + (x0 + dx).long() % cells
         sums.index_add_(0, image_index * cells * cells + cell, weight * projected)
-    if encoder.pulse:
-        return smoothed_cells(sums.reshape(n_images, 1, cells, cells), encoder.pulse).reshape(n_images, -1)
     return sums.reshape(n_images, -1)
 
 

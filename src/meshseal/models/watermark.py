@@ -49,7 +49,6 @@ class ModelConfig:
     pilot_chips: int = 0  # spread: the finest grid the pilot's signs take (a finer grid puts them on blocks of its cells; 0: every grid's own cells)
     pilot_gain: float = 1.0  # spread: the pilot's cells' amplitude against the message's (before the mark is scaled to its PSNR)
     pilot_share: float = 0.0  # spread: the share of the cells that carry the key's own signs, not the message (a presence test)
-    pulse: int = 0  # spread: binomial smoothing passes of the cell grid (`models.spread.smoothed_cells`: a smoother cell shape)
     read_highpass: float = 1.5  # spread reading: the residual's slow part taken off (Gaussian sigma, px; `models.spread.whiten`)
     read_window: float = 2.0  # spread reading: the window of the residual's local variance (sigma, px)
     read_brightness: float = 0.0  # spread reading: the brightness fit's window (sigma, px; 0: each pixel's own; < 0: none)
@@ -111,7 +110,7 @@ class WatermarkModel(nn.Module):
                                                              config.pattern_seed, config.coarse_chips, config.coarse_below,
                                                              config.fine_chips, config.fine_above, config.bit_block,
                                                              config.pilot_share, config.pilot_block, config.pilot_gain,
-                                                             config.pilot_chips, config.pulse)
+                                                             config.pilot_chips)
             elif config.texture_encoder == "surface":
                 self.texture_encoder = SurfaceCodeEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
                                                           config.activity_window, config.activity_floor,
