@@ -9,6 +9,10 @@ mesh, kept: a later run with other settings renders nothing; Blender's engines n
 --attacks` applies it), under each value of one model setting
 (`--vary KEY=V1,V2,...`, e.g. `read_affine=0,1`): per engine and value, the share detected at FPR 1e-6,
 named (the owner's test of its message, `detect --expect`) and the mean bit accuracy, one Markdown row each.
+With `--oracle` (camera known) each marked picture is read against the same engine's own render of the
+original instead of the relit original (an oracle no user has: the engine's shading, texture filtering
+and sampling, without the mark), which tells whether the mark is lost in an engine's pictures or the
+prediction of them is what misfits.
 
     python experiments/engine_reading.py --data data --meshes 24 --engines ours cycles workbench eevee \
         --cache runs/engine_cache --vary read_affine=0,1 [--register] [--model default]
@@ -74,6 +78,8 @@ def main() -> None:
     parser.add_argument("--model", default="default")
     parser.add_argument("--unmarked", action="store_true",
                         help="read the unmarked originals' pictures instead: false positives and the smallest p-value")
+    parser.add_argument("--oracle", action="store_true",
+                        help="read against the engine's own unmarked render (camera known)")
     parser.add_argument("--attack", default="none", help="a picture attack of `meshseal eval --attacks` (jpeg90, webp80, ...)")
     args = parser.parse_args()
     from meshseal.evaluation.attacks import ATTACKS, apply
@@ -88,6 +94,23 @@ def main() -> None:
     dataset = MeshDataset(args.data, "test", seed=0)
     count = min(args.meshes, len(dataset))
     render_cache(wm, dataset, args.engines, count, args.cache)
+    clean = {}
+    if args.oracle:
+        if args.register:
+            parser.error("--oracle reads with the camera known")
+        import meshseal.methods.spread as spread_module
+        import meshseal.reading.footprint as footprint_module
+
+        relit = spread_module.relit_residual
+
+        def oracle_relit(mesh, image, cameras, **options):  # the engine's own unmarked render as the prediction
+            found = relit(mesh, image, cameras, **options)
+            flat = torch.from_numpy(clean["picture"].astype(np.float32) / 255.0).reshape(-1, 3).to(found.expected)
+            return replace(found, expected=flat.index_select(0, found.fragments.pixel.index_select(0, found.keep)))
+
+        spread_module.relit_residual = oracle_relit
+        spread_module.picture_footprint = lambda *a, **k: None  # the oracle is already as the engine sampled
+        footprint_module.remember_choice = lambda *a, **k: None
     tally = {(e, v): [] for e in args.engines for v in values}
     for index in range(count):
         pictures = np.load(args.cache / f"{index}.npz")
@@ -100,6 +123,7 @@ def main() -> None:
                 setattr(wm.model.config, key, value)
                 picture = apply(args.attack, pictures[f"{engine}_{'o' if args.unmarked else 'm'}"],
                                 np.random.default_rng([index, 1]))
+                clean["picture"] = pictures[f"{engine}_o"]
                 try:
                     if args.register:
                         reading = wm.look_again(wm.read(picture, original, register=True), original)
@@ -115,7 +139,8 @@ def main() -> None:
                                                float(found.p_value)))
                 line.append(f"{engine} {key}={value:g}: {bits:.2f}{' detected' if found.detected else ''}")
         print(f"mesh {index}: " + "; ".join(line), flush=True)
-    camera = ("registered" if args.register else "camera known") + (", unmarked pictures" if args.unmarked else "")
+    camera = ("registered" if args.register else "camera known") + (", unmarked pictures" if args.unmarked else "") \
+        + (", read against the engine's own unmarked render" if args.oracle else "")
     print(f"\n| engine | {key} | pictures | detected | named | bit accuracy | smallest p |\n|---|---|---|---|---|---|---|")
     for (engine, value), rows in tally.items():
         detected, named, bits = (np.mean([r[i] for r in rows]) for i in range(3))
