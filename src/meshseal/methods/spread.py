@@ -27,6 +27,7 @@ PALETTE_WARNING = 0.5  # embed warns when this share of the textured surface has
 # picture from another engine (0.35-0.6 measured on Blender's three), not our renderer's own pictures
 # nor their JPEG or WebP copies (0.65-0.9), which the fit would only weaken.
 AFFINE_BELOW = 0.7
+LINEAR_LIGHT = True  # a picture the sRGB prediction misses is also predicted in linear light (`reading.linear_light`)
 
 
 def _luma_along(colour: torch.Tensor) -> float:
@@ -130,6 +131,17 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             if n_images == 1 and known is None:
                 remember_choice(image, sampled)
         expected = found.expected if sampled is None else sampled.expected
+        if model.config.read_affine > 0.0 and n_images == 1 and LINEAR_LIGHT:  # another engine's shading?
+            from ..reading import linear_light
+
+            misfit = linear_light.detail_misfit(found.seen, expected, pixel, (1, height, width))
+            if misfit > linear_light.TRY_ABOVE ** 2:
+                candidate = linear_light.linear_prediction(mesh, image, cameras, footprint, found)
+                if candidate is not None:
+                    linear = candidate[0].expected if candidate[1] is None else candidate[1].expected
+                    if linear_light.detail_misfit(found.seen, linear, pixel, (1, height, width)) < \
+                            linear_light.PICK_BELOW * misfit:
+                        (found, sampled), expected = candidate, linear
         fit = model.config.read_brightness if brightness else -1.0
         dequantized = None
         if compression:  # the prediction as the picture's codec saved it (`reading.compression`)
