@@ -110,7 +110,8 @@ def remember_choice(image: torch.Tensor, footprint: "Footprint") -> None:
 
 def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,
                       sigmas: tuple[float, ...] = FOOTPRINT_SIGMAS,
-                      resampled: tuple[float, ...] = RESAMPLED, known: tuple[float, float] | None = None) -> Footprint:
+                      resampled: tuple[float, ...] = RESAMPLED, known: tuple[float, float] | None = None,
+                      shortcut: bool = True) -> Footprint:
     """Pick, per picture, the footprint (point samples, or the pixel area blurred by one of `sigmas`)
     under which the relit original best predicts the picture's fine detail: the largest normalised
     correlation between the picture and the prediction, both high-passed (their local mean over the
@@ -122,7 +123,9 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     the luminance of a texture's edges shows the difference. The choice looks at
     the picture and the original only, never at a key, so the matched filter's null stays the same.
     `known` (one picture: `chosen_before`): the footprint a reading of this picture chose before, the
-    only one tried beside point samples and the pixel's area (point samples: taken at once)."""
+    only one tried beside point samples and the pixel's area (point samples: taken at once). `shortcut`
+    False: searched even where point samples explain the picture within POINT_ENOUGH (a prediction in
+    linear light, whose levels that threshold does not measure)."""
     from ..imaging import blur_radius
     from ..models.spread import local_mean, within_reach
     from ..render import rasterize
@@ -141,7 +144,7 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
             return Footprint(found.expected, torch.ones_like(found.keep, dtype=torch.bool), point, None, None, scale)
         forced = not math.isnan(factor)
         sigmas, resampled = ((), (factor,)) if forced else ((sigma,), ())
-    if _point_samples_explain(found, n_images, height, width):  # nothing finer to find: no supersampled render
+    if shortcut and _point_samples_explain(found, n_images, height, width):  # nothing finer to find: no supersampled render
         point = torch.full((n_images,), float("nan"), device=found.expected.device)
         return Footprint(found.expected, torch.ones_like(found.keep, dtype=torch.bool), point, None, None, scale)
     positions = relit.positions.expand(n_images, -1, -1) if relit.positions.shape[0] == 1 else relit.positions

@@ -19,7 +19,7 @@ from dataclasses import replace
 
 import torch
 
-TRY_ABOVE = 2.0 / 255  # the sRGB prediction's fine-detail misfit (RMS) above which the linear one is tried
+TRY_ABOVE = 1.0 / 255  # the sRGB prediction's fine-detail misfit (RMS) above which the linear one is tried
 PICK_BELOW = 0.9  # the linear prediction is read where its fine-detail misfit energy is under this share of the sRGB one's
 DETAIL_SIGMA = 1.5  # px: the local mean taken off both predictions' residuals before comparing them
 
@@ -68,7 +68,7 @@ def linear_prediction(mesh, image: torch.Tensor, cameras, footprint: bool, found
     linear = relit_residual(lit, srgb_to_linear(image), cameras)
     if not torch.equal(linear.keep, found.keep):
         return None
-    sampled = picture_footprint(lit, linear, cameras, height, width) if footprint else None
+    sampled = picture_footprint(lit, linear, cameras, height, width, shortcut=False) if footprint else None
     encoded = replace(linear, seen=found.seen, albedo=found.albedo, expected=linear_to_srgb(linear.expected).to(found.expected))
     if sampled is not None:
         sampled = replace(sampled, expected=linear_to_srgb(sampled.expected).to(found.expected))
