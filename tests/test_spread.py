@@ -1110,3 +1110,40 @@ def test_a_pilot_chips_grid_puts_a_finer_grids_pilot_on_blocks_and_leaves_coarse
     config = ModelConfig.from_dict({"n_bits": 64, "texture_encoder": "spread", "chips": 64, "pilot_share": 0.5,
                                     "fine_chips": 512, "pilot_chips": 128})
     assert WatermarkModel(config).texture_encoder.pilot_width(512) == 4
+
+
+def test_a_picture_shaded_in_linear_light_is_predicted_in_linear_light(monkeypatch):
+    """A picture made as Blender's engines make theirs (the texture decoded to linear light, shaded and
+    averaged over each pixel there, then encoded to sRGB) is predicted in linear light too, and that
+    prediction, which misses it less, is read: the pilot's z grows clearly. Our own point-sampled picture
+    reads exactly as without it."""
+    import torch.nn.functional as F
+    import yaml
+
+    import meshseal.methods.spread as spread
+    from meshseal.imaging import gaussian_blur
+    from meshseal.methods.spread import spread_evidence
+    from meshseal.models.spread import pilot_z
+    from meshseal.reading.linear_light import linear_mesh, linear_to_srgb, srgb_to_linear
+
+    levels = torch.linspace(0, 1, 256)
+    assert torch.allclose(linear_to_srgb(srgb_to_linear(levels)), levels, atol=1e-6)
+    config = ModelConfig.from_dict(yaml.safe_load((FIXTURES.parents[1] / "configs" / "default.yaml").read_text())["model"])
+    model = WatermarkModel(config)
+    mesh = normalize(to_z_up(load(FIXTURES / "sh3d_crate" / "crate.obj")))
+    message = torch.randint(0, 2, (1, 64), generator=torch.Generator().manual_seed(3)).float()
+    original, marked = MeshBatch.from_mesh(mesh), MeshBatch.from_mesh(mesh)
+    marked.textures = [model.texture_encoder(mesh.materials[0].texture.permute(2, 0, 1)[None], message, 1.0)[0]]
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        ours = _quantise(MeshRenderer()(marked, cameras, lights, 128, 128).image)
+        fine = MeshRenderer()(linear_mesh(marked), cameras, lights, 512, 512).image
+        engine = _quantise(linear_to_srgb(F.avg_pool2d(gaussian_blur(fine, 2.0), 4)))  # pixel area, 0.5 px filter
+        readings = {}
+        for linear in (True, False):
+            monkeypatch.setattr(spread, "LINEAR_LIGHT", linear)
+            readings[linear] = [spread_evidence(model, original, picture, cameras) for picture in (ours, engine)]
+    z = {linear: [float(pilot_z(model.texture_encoder, sums[0].double())[0]) for sums in evidence]
+         for linear, evidence in readings.items()}
+    assert torch.equal(readings[True][0], readings[False][0])  # our own picture: as before
+    assert z[True][1] > 1.3 * z[False][1] and z[True][1] > 10.0

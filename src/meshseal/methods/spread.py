@@ -131,24 +131,18 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
             if n_images == 1 and known is None:
                 remember_choice(image, sampled)
         expected = found.expected if sampled is None else sampled.expected
-        if model.config.read_affine > 0.0 and n_images == 1 and LINEAR_LIGHT:  # another engine's shading?
-            from ..reading import linear_light
-
-            misfit = linear_light.detail_misfit(found.seen, expected, pixel, (1, height, width))
-            if misfit > linear_light.TRY_ABOVE ** 2:
-                candidate = linear_light.linear_prediction(mesh, image, cameras, footprint, found)
-                if candidate is not None:
-                    linear = candidate[0].expected if candidate[1] is None else candidate[1].expected
-                    if linear_light.detail_misfit(found.seen, linear, pixel, (1, height, width)) < \
-                            linear_light.PICK_BELOW * misfit:
-                        (found, sampled), expected = candidate, linear
         fit = model.config.read_brightness if brightness else -1.0
         dequantized = None
+        before, saved = expected, (lambda prediction: prediction)  # the prediction before and after the codec
         if compression:  # the prediction as the picture's codec saved it (`reading.compression`)
             from ..reading import compression as codecs
 
-            before = expected
             expected, chosen = codecs.recompressed(image, expected, pixel)
+            saved = lambda prediction: codecs.recompressed(image, prediction, pixel)[0]  # noqa: E731 (the codec found)
+        if model.config.read_affine > 0.0 and n_images == 1 and LINEAR_LIGHT:  # another engine's shading?
+            found, sampled, before, expected = _linear_if_better(mesh, image, cameras, footprint, found, sampled,
+                                                                 before, expected, saved, pixel)
+        if compression:
             if fit < 0.0 and codecs.reads_quantiser(image, chosen):  # no brightness fit: a JPEG read through its quantiser
                 if model.config.read_affine > 0.0:  # the unrounded prediction as another engine showed it
                     before = _affine_where_it_fits(found.seen, before, _read_along(model).to(image), pixel,
@@ -213,6 +207,27 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
         return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, grids)
+
+
+def _linear_if_better(mesh, image, cameras, footprint, found, sampled, before, after, saved, pixel):
+    """The reading's prediction of one picture, (found, sampled, before the codec, after it), made in
+    linear light instead (`reading.linear_light`) where the sRGB one (`after`, through the picture's
+    codec) misses the picture's fine detail by more than our own pictures are missed and the linear one,
+    through the same codec (`saved`), misses it clearly less. Picture and original only: no key."""
+    from ..reading import linear_light
+
+    shape = (1, image.shape[-2], image.shape[-1])
+    misfit = linear_light.detail_misfit(found.seen, after, pixel, shape)
+    if misfit <= linear_light.TRY_ABOVE ** 2:
+        return found, sampled, before, after
+    candidate = linear_light.linear_prediction(mesh, image, cameras, footprint, found)
+    if candidate is None:
+        return found, sampled, before, after
+    linear = candidate[0].expected if candidate[1] is None else candidate[1].expected
+    through = saved(linear)
+    if linear_light.detail_misfit(found.seen, through, pixel, shape) >= linear_light.PICK_BELOW * misfit:
+        return found, sampled, before, after
+    return candidate[0], candidate[1], linear, through
 
 
 OWN_MARK_SCALES = (0.5, 1.0)  # `own_mark_pvalue`'s whitening windows, in cells (docs/payload.md: measured against (2.0,))
