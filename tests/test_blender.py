@@ -96,7 +96,10 @@ def test_double_sided_sheet_shades_like_one_sheet(engine):
 def test_registration_holds_on_a_workbench_picture_of_the_deck_chair():
     """Workbench's studio light and mipmapped textures leave the original's texture a poor fit (misfit
     about 0.9 at the true pose, 0.01 on our own pictures): the texture stage once drifted 2 px off the
-    pose the thin chair's silhouette had found to 0.06 px. The silhouette now vetoes such a move."""
+    pose the thin chair's silhouette had found to 0.06 px. The silhouette now vetoes such a move. (The
+    Workbench picture differs a little between machines: the registered pose was under 0.5 px off on
+    the machines this test was written on and 0.61 px off on another, with or without the veto; the
+    drift it guards against is 2 px.)"""
     from meshseal.reading.framing import object_mask
     from meshseal.render.views import sample_views
     from meshseal.reading.registration import pose_error, register_with_masks
@@ -111,7 +114,7 @@ def test_registration_holds_on_a_workbench_picture_of_the_deck_chair():
     original = meshseal.load().original(chair)
     found = register_with_masks(original, torch.from_numpy(pixels).permute(2, 0, 1), [torch.from_numpy(mask)],
                                 torch.from_numpy(background))
-    assert pose_error(original, cameras, found.camera, 256, 256) < 0.5
+    assert pose_error(original, cameras, found.camera, 256, 256) < 1.0
 
 
 def test_render_cli_engines_and_errors(tmp_path, capsys):
