@@ -20,6 +20,31 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def hook_readings(order: list[str], handle) -> None:
+    """Make `meshseal.evaluation.evaluate` call handle(state, watermarker, reading, attack) after each
+    picture it reads (`reading` None where nothing was read), `attack` named from `order` (the eval
+    reads each picture with its camera first, then after each attack); `state` holds the mesh's index
+    (from 0), its object pixels, its picture kinds and the grid it is marked on."""
+    from meshseal.evaluation import evaluate as ev
+
+    state = {"mesh": -1, "call": 0}
+    real_kinds, real_read = ev.picture_kinds, ev._read_or_none
+
+    def kinds(encoder, grid, pictures, masks):  # called once per mesh, before its readings
+        state.update(mesh=state["mesh"] + 1, call=0, pixels=int(masks[0].sum()), grid=grid)
+        state["kinds"] = real_kinds(encoder, grid, pictures, masks)
+        return state["kinds"]
+
+    def read(watermarker, picture, original, **options):
+        reading = real_read(watermarker, picture, original, **options)
+        attack = order[state["call"]] if state["call"] < len(order) else "?"
+        state["call"] += 1
+        handle(state, watermarker, reading, attack)
+        return reading
+
+    ev.picture_kinds, ev._read_or_none = kinds, read
+
+
 def record(args) -> None:
     import torch
     import yaml
@@ -38,19 +63,9 @@ def record(args) -> None:
     dataset = MeshDataset(args.data, "test", seed=0)
     attacks = parse(args.attacks)
     order = ["png"] + list(attacks)  # the eval reads each picture with its camera first, then after each attack
-    state = {"mesh": -1, "call": 0}
     out = open(args.out, "w")
-    real_kinds, real_read = ev.picture_kinds, ev._read_or_none
 
-    def kinds(encoder, grid, pictures, masks):  # called once per mesh, before its readings
-        state.update(mesh=state["mesh"] + 1, call=0, pixels=int(masks[0].sum()), grid=grid)
-        state["kinds"] = real_kinds(encoder, grid, pictures, masks)
-        return state["kinds"]
-
-    def read(watermarker, picture, original, **options):
-        reading = real_read(watermarker, picture, original, **options)
-        attack = order[state["call"]] if state["call"] < len(order) else "?"
-        state["call"] += 1
+    def handle(state, watermarker, reading, attack):
         line = {"mesh": state["mesh"], "id": dataset.rows[state["mesh"]]["id"], "attack": attack,
                 "pixels": state["pixels"], "kinds": state["kinds"][0], "grid": state["grid"]}
         if reading is not None:
@@ -62,9 +77,8 @@ def record(args) -> None:
                                  for sums in split_grids(method.encoder, evidence)]}
         out.write(json.dumps(line) + "\n")
         out.flush()
-        return reading
 
-    ev.picture_kinds, ev._read_or_none = kinds, read
+    hook_readings(order, handle)
     torch.manual_seed(0)
     result = ev.evaluate_registered(model, dataset, args.meshes, 0, 256, "seed", None, views=1, register=False,
                                     max_flip=None, attacks=attacks)

@@ -32,26 +32,17 @@ def record(args) -> None:
     from meshseal.evaluation.attacks import parse
     from meshseal.models import ModelConfig, WatermarkModel
     from meshseal.models.spread import split_grids
+    from picture_log import hook_readings
 
     config = yaml.safe_load(args.config.read_text())["model"]
     model = WatermarkModel(ModelConfig.from_dict(config))
     dataset = MeshDataset(args.data, "test", seed=0)
     order = ["png"] + list(parse(args.attacks))
-    state = {"mesh": -1, "call": 0}
     units, meta = [], []
-    real_kinds, real_read = ev.picture_kinds, ev._read_or_none
 
-    def kinds(encoder, grid, pictures, masks):
-        state.update(mesh=state["mesh"] + 1, call=0)
-        state["kinds"] = real_kinds(encoder, grid, pictures, masks)
-        return state["kinds"]
-
-    def read(watermarker, picture, original, **options):
-        reading = real_read(watermarker, picture, original, **options)
-        attack = order[state["call"]] if state["call"] < len(order) else "?"
-        state["call"] += 1
+    def handle(state, watermarker, reading, attack):
         if reading is None:
-            return reading
+            return
         method = watermarker.method
         encoder = method.encoder
         evidence = reading.evidence if reading.evidence.dim() == 2 else reading.evidence[None]
@@ -70,9 +61,8 @@ def record(args) -> None:
             seen = pilot & (cells != 0)
             units.append(np.stack([cells[seen].numpy(), sign[seen].numpy()]))
             meta.append({"mesh": state["mesh"], "attack": attack, "grid": grid, "kinds": state["kinds"][0]})
-        return reading
 
-    ev.picture_kinds, ev._read_or_none = kinds, read
+    hook_readings(order, handle)
     torch.manual_seed(0)
     ev.evaluate_registered(model, dataset, args.meshes, 0, 256, "seed", None, views=1, register=False,
                            max_flip=None, attacks=parse(args.attacks))
