@@ -19,7 +19,7 @@ from dataclasses import replace
 
 import torch
 
-TRY_ABOVE = 1.0 / 255  # the sRGB prediction's fine-detail misfit (RMS) above which the linear one is tried
+TRY_ABOVE = 1.5 / 255  # the sRGB prediction's fine-detail misfit (RMS) above which the linear one is tried
 PICK_BELOW = 0.9  # the linear prediction is read where its fine-detail misfit energy is under this share of the sRGB one's
 DETAIL_SIGMA = 1.5  # px: the local mean taken off both predictions' residuals before comparing them
 
