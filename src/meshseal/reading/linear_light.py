@@ -5,12 +5,12 @@ shade it there, average each pixel's samples there (antialiasing, a film filter,
 the result back to sRGB. Our renderer shades the sRGB texture as it is. Where the shading changes from
 face to face or a texture's detail is averaged within a pixel, the two differ by more than the mark,
 and no local gain and offset of our prediction (`models.spread.local_affine`) takes that up. So a
-picture our prediction misses by more than our own pictures ever are (`TRY_ABOVE`) is predicted a
+picture our prediction misses by more than our own pictures mostly are (`TRY_ABOVE`) is predicted a
 second time as such an engine would: the original's textures decoded to linear light, the picture
 decoded likewise for the light fit, the relit render and its footprint (`picture_footprint`) made in
-linear light and encoded to sRGB at the end; the prediction whose fine detail misses the picture less
-(by `PICK_BELOW`) is read. Both look at the picture and the original only, never at a key, so the
-matched filter's p-values stay exact.
+linear light and encoded to sRGB at the end; the prediction whose fine detail, once saved through the
+picture's codec, misses the picture clearly less (`PICK_BELOW`) is read (`methods.spread`). Both look
+at the picture and the original only, never at a key, so the matched filter's p-values stay exact.
 """
 
 from __future__ import annotations
