@@ -25,9 +25,9 @@ DETAIL_SIGMA = 1.5  # px: the local mean taken off both predictions' residuals b
 
 
 def srgb_to_linear(values: torch.Tensor) -> torch.Tensor:
-    """sRGB-encoded values in [0, 1] -> linear light (IEC 61966-2-1)."""
-    values = values.clamp(0.0, 1.0)
-    return torch.where(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)
+    """sRGB-encoded values -> linear light (IEC 61966-2-1; values outside [0, 1], a prediction's
+    overshoot, continue the curve's two pieces)."""
+    return torch.where(values <= 0.04045, values / 12.92, ((values.clamp_min(0.0) + 0.055) / 1.055) ** 2.4)
 
 
 def linear_to_srgb(values: torch.Tensor) -> torch.Tensor:
