@@ -221,7 +221,7 @@ def linear_light_direction(expected: torch.Tensor) -> torch.Tensor:
     channel by the slope of the sRGB curve at its linear value: steep on dark channels, so it lifts a
     saturated colour's darkest channel most (a deck chair's blue stripes) and is no longer white; on a
     grey pixel it is the brightness, and the direction returned is short there."""
-    from .linear_light import srgb_to_linear
+    from ..imaging import srgb_to_linear
 
     linear = srgb_to_linear(expected)
     slope = torch.where(linear <= 0.0031308, torch.full_like(linear, 12.92),

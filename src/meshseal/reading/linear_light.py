@@ -19,21 +19,11 @@ from dataclasses import replace
 
 import torch
 
+from ..imaging import linear_to_srgb, srgb_to_linear
+
 TRY_ABOVE = 1.5 / 255  # the sRGB prediction's fine-detail misfit (RMS) above which the linear one is tried
 PICK_BELOW = 0.9  # the linear prediction is read where its fine-detail misfit energy is under this share of the sRGB one's
 DETAIL_SIGMA = 1.5  # px: the local mean taken off both predictions' residuals before comparing them
-
-
-def srgb_to_linear(values: torch.Tensor) -> torch.Tensor:
-    """sRGB-encoded values -> linear light (IEC 61966-2-1; values outside [0, 1], a prediction's
-    overshoot, continue the curve's two pieces)."""
-    return torch.where(values <= 0.04045, values / 12.92, ((values.clamp_min(0.0) + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(values: torch.Tensor) -> torch.Tensor:
-    """Linear light in [0, 1] -> sRGB-encoded values (IEC 61966-2-1)."""
-    values = values.clamp(0.0, 1.0)
-    return torch.where(values <= 0.0031308, 12.92 * values, 1.055 * values.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
 
 
 def linear_mesh(mesh):
