@@ -18,7 +18,7 @@ import torch
 from ..data.dataset import collate
 from ..models import WatermarkModel
 from ..render import MeshRenderer
-from ..methods.batches import batch_mark_grid, batch_texel_weights, batch_texels_used, charted_item, unpadded
+from ..methods.batches import batch_mark_grid, batch_texels_used, charted_item, unpadded
 from .asset_attacks import ASSET_ATTACKS
 from .asset_attacks import apply as attack_asset
 from .attacks import GEOMETRIC
@@ -162,8 +162,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             if calibrated:  # as `meshseal embed` marks it: within its FLIP budget
                 normals_marked, uvs_marked = normals, uvs
                 grid = batch_mark_grid(model.texture_encoder, batch)
-                weights = batch_texel_weights(batch, model.texture_encoder)  # where the mark lies, and how much
-                mark = lambda at: model.texture_encoder(texture, message, at, payload.key_seed(None), grid, weights)  # noqa: E731
+                mark = lambda at: model.texture_encoder(texture, message, at, payload.key_seed(None), grid, used)  # noqa: E731
                 if max_flip is None:
                     texture_marked, used_strength = mark(strength), strength
                 else:

@@ -52,15 +52,6 @@ def batch_texels_used(batch: dict) -> torch.Tensor:
                         for _, _, uvs, faces in items])[:, None].to(batch["texture"].device)
 
 
-def batch_texel_weights(batch: dict, encoder) -> torch.Tensor:
-    """How much of a spread mark each texel (B, 1, H, W) of each mesh of a dataset batch takes (0 where
-    it shows nothing), as `Watermarker.embed` lays it (`SpreadSpectrumEncoder.shown_weights`)."""
-    height, width = batch["texture"].shape[-2:]
-    items = (unpadded(batch, index) for index in range(len(batch["texture"])))
-    return torch.stack([encoder.shown_weights(positions, faces, uvs, height, width)
-                        for positions, _, uvs, faces in items])[:, None].to(batch["texture"].device)
-
-
 def batch_texel_columns(batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
     """Each texel's column and whether it paints any (B, H, W) each, for every mesh of a dataset batch
     (its padding left out), where a surface mark lies (`models.surface.texel_columns`)."""

@@ -72,23 +72,6 @@ def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: to
     return torch.where(use.index_select(0, image)[:, None], fitted, expected)
 
 
-_WEIGHTS: list = []  # the last few originals' `shown_weights` (detection asks for them once per picture)
-
-
-def _shown_weights(encoder, mesh, index: int, size) -> torch.Tensor:
-    """`encoder.shown_weights` of material `index` of a prepared original (a one-mesh MeshBatch) at
-    `size`, kept for the last few originals."""
-    key = (index, tuple(size), encoder.density_power, encoder.density_limit)
-    for positions, uvs, kept, weights in _WEIGHTS:  # the tensors kept alive here, so identity is safe
-        if positions is mesh.positions and uvs is mesh.uvs and kept == key:
-            return weights
-    faces = mesh.faces[0] if mesh.faces.dim() == 3 else mesh.faces
-    material = mesh.face_material[0] if mesh.face_material.dim() == 2 else mesh.face_material
-    weights = encoder.shown_weights(mesh.positions[0], faces[material == index], mesh.uvs[0], *size).to(mesh.positions)
-    _WEIGHTS[:] = [(mesh.positions, mesh.uvs, key, weights)] + _WEIGHTS[:7]
-    return weights
-
-
 def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor, cameras: Cameras,
                     whitening: dict | None = None, footprint: bool = True, brightness: bool = True,
                     grids: tuple[int, ...] | None = None, compression: bool = True,
@@ -120,9 +103,6 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
     with torch.no_grad():
         # An untextured material carries no mark: weight 0 (a None texture would sample as white).
         masks = [encoder.amplitude(t[None])[0] if t is not None else image.new_zeros(3, 1, 1) for t in mesh.textures]
-        if encoder.density_power:  # the mark as it was laid: more where a texel paints more surface
-            masks = [mask * _shown_weights(encoder, mesh, index, mask.shape[-2:]) if t is not None else mask
-                     for index, (mask, t) in enumerate(zip(masks, mesh.textures))]
         given_footprint = None  # the textures' footprint, where an import was weighed against it and not taken
         if imports is not None and n_images == 1:  # the asset as its import made it, where that explains the picture
             from ..reading.imports import beats_footprint, pick, pick_normals
@@ -337,7 +317,7 @@ class SpreadMethod(Method):
         import sys
 
         from ..errors import MeshsealError
-        from ..models.spread import palette_share
+        from ..models.spread import palette_share, texels_used
 
         if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
             raise MeshsealError(f"{source_prefix(mesh)}the mesh has no texture with UVs to carry the watermark, "
@@ -354,8 +334,7 @@ class SpreadMethod(Method):
             if material.texture is None:
                 continue
             texture = material.texture.to(self.device).permute(2, 0, 1).unsqueeze(0)
-            used = self.encoder.shown_weights(marked.positions, marked.faces[marked.face_material == index], marked.uvs,
-                                              *texture.shape[-2:])
+            used = texels_used(marked.uvs, marked.faces[marked.face_material == index], *texture.shape[-2:])
             try:
                 marked_texture = self.encoder(texture, message, strength, key_seed, grid, used)
             except ValueError as error:

@@ -85,8 +85,7 @@ class SpreadSpectrumEncoder(nn.Module):
     def __init__(self, n_bits: int, chips: int = 128, colour: str = "blue-yellow", texture_psnr: float = 40.0,
                  window: int = 5, floor: float = 0.3, seed: int = 0, coarse_chips: int = 0, coarse_below: float = 0.6,
                  fine_chips: int = 0, fine_above: float = 2.0, block: int = 1, pilot_share: float = 0.0,
-                 pilot_block: int = 1, pilot_gain: float = 1.0, pilot_chips: int = 0, density_power: float = 0.0,
-                 density_limit: float = 4.0):
+                 pilot_block: int = 1, pilot_gain: float = 1.0, pilot_chips: int = 0):
         super().__init__()
         if not 0.0 <= pilot_share < 1.0:
             raise ValueError("the pilot's share of the cells must be in [0, 1)")
@@ -97,7 +96,6 @@ class SpreadSpectrumEncoder(nn.Module):
         self.seed, self.coarse_chips, self.coarse_below = seed, coarse_chips, coarse_below
         self.fine_chips, self.fine_above, self.block, self.pilot_block = fine_chips, fine_above, block, pilot_block
         self.pilot_gain, self.pilot_chips = pilot_gain, pilot_chips
-        self.density_power, self.density_limit = density_power, density_limit
         assign, sign = self._draw(seed, chips)
         self.register_buffer("assign", assign)
         self.register_buffer("sign", sign)
@@ -156,17 +154,6 @@ class SpreadSpectrumEncoder(nn.Module):
         `pilot_block`, or more on a grid finer than `pilot_chips`, whose pilot takes that grid's signs."""
         wide = max(self.pilot_block, chips // self.pilot_chips if self.pilot_chips else 1)
         return wide if wide > 1 and self.pilot_slots and chips % wide == 0 else 1
-
-    def shown_weights(self, positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, height: int,
-                      width: int) -> torch.Tensor:
-        """Where the mark lies on a height x width texture of the mesh, and how much of it (height, width)
-        float: 0 on texels no face shows (`texels_used`), else 1, or with `density_power` the surface
-        area each texel paints relative to the median (`texel_weights`). The mark's RMS over the shown
-        texels stays the target texture PSNR's; a texel that paints more surface shows its share of the
-        mark over more pixels of a picture, at a coarser scale, where a codec keeps more of it."""
-        if not self.density_power:
-            return texels_used(uvs, faces, height, width).float()
-        return texel_weights(positions, faces, uvs, height, width, self.density_power, self.density_limit)
 
     def pattern(self, key_seed: int | None = None, chips: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The cell-to-bit assignment (C*C,) and cell signs (C*C,) of a chips x chips grid (the model's
@@ -228,8 +215,7 @@ class SpreadSpectrumEncoder(nn.Module):
         share = 1.0
         if used is not None:
             used = F.interpolate(used.reshape(-1, 1, *used.shape[-2:]).to(texture), size=texture.shape[-2:], mode="nearest")
-            share = (used > 0).to(texture).mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
-            residual = residual * used
+            residual, share = residual * used, used.mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
         rms = strength * 10.0 ** (-self.texture_psnr / 20.0)
         energy = residual.pow(2).mean(dim=(1, 2, 3), keepdim=True) / share
         residual = residual * rms / energy.sqrt().clamp_min(1e-8)
@@ -253,46 +239,6 @@ def texels_used(uvs: torch.Tensor, faces: torch.Tensor, height: int, width: int)
     used = texel_coverage(corners, min(height, USED_RESOLUTION), min(width, USED_RESOLUTION))
     grown = F.max_pool2d(F.pad(used[None, None].float(), (1, 1, 1, 1), mode="circular"), 3, 1)
     return F.interpolate(grown, size=(height, width), mode="nearest")[0, 0] > 0
-
-
-DENSITY_RESOLUTION = 256  # `texel_weights` measures the surface per texel at most this many texels a side
-
-
-def texel_weights(positions: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, height: int, width: int,
-                  power: float = 1.0, limit: float = 4.0) -> torch.Tensor:
-    """(height, width) float: 0 on the texels faces (F, 3) cannot show (`texels_used`); on the others the
-    surface area (positions (V, 3)) a texel paints, summed over the faces that use it (mirrored UVs paint
-    twice), relative to its median over the shown texels, to the power `power` and held within [1 / limit,
-    limit]. A texel painting more surface is seen over more pixels of a picture; measured at most
-    DENSITY_RESOLUTION texels a side (a chart's density changes slowly), texels no face's centre lies in
-    taking their neighbours' mean or the median."""
-    used = texels_used(uvs, faces, height, width)
-    corners = uvs.detach().double().cpu()[faces.cpu().long()]
-    if len(corners) == 0 or not bool(used.any()):
-        return used.float()
-    corners = corners - torch.floor(corners.amin(1, keepdim=True))
-    if bool((corners.amax(dim=(1, 2)) > 2.0).any()):  # a face over two UV squares: no density to speak of
-        return used.float()
-    from ..render.rasterizer import texel_sums
-
-    rows, columns = min(height, DENSITY_RESOLUTION), min(width, DENSITY_RESOLUTION)
-    points = positions.detach().double().cpu()[faces.cpu().long()]
-    surface = torch.linalg.cross(points[:, 1] - points[:, 0], points[:, 2] - points[:, 0]).norm(dim=1) / 2
-    edges = (corners[:, 1:] - corners[:, :1]) * torch.tensor([columns, rows], dtype=torch.float64)
-    texels = (edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]).abs() / 2
-    per_texel = torch.where(texels > 1e-9, surface / texels.clamp_min(1e-9), torch.zeros_like(surface))
-    density = texel_sums(corners, per_texel, rows, columns)
-    covered = texel_sums(corners, (texels > 1e-9).double(), rows, columns) > 0
-    if not bool(covered.any()):
-        return used.float()
-    median = density[covered].median().clamp_min(1e-12)
-    plane = torch.stack([density * covered, covered.double()])[:, None]
-    spread = F.avg_pool2d(F.pad(plane, (1, 1, 1, 1), mode="circular"), 3, 1)[:, 0]
-    filled = torch.where(spread[1] > 0, spread[0] / spread[1].clamp_min(1e-12), median)
-    density = torch.where(covered, density, filled)
-    weight = (density / median).pow(power).clamp(1.0 / limit, limit).float()
-    weight = F.interpolate(weight[None, None], size=(height, width), mode="nearest")[0, 0]
-    return weight * used
 
 
 def carrier(texture: torch.Tensor, chips: int) -> torch.Tensor:

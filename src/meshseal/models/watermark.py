@@ -48,8 +48,6 @@ class ModelConfig:
     pilot_block: int = 1  # spread: the pilot's cells in pilot_block x pilot_block blocks of one sign (a wider pilot)
     pilot_chips: int = 0  # spread: the finest grid the pilot's signs take (a finer grid puts them on blocks of its cells; 0: every grid's own cells)
     pilot_gain: float = 1.0  # spread: the pilot's cells' amplitude against the message's (before the mark is scaled to its PSNR)
-    density_power: float = 0.0  # spread: the mark's amplitude times (surface a texel paints / its median) ** this (0: even over the shown texels)
-    density_limit: float = 4.0  # spread: ... held within [1 / this, this]
     pilot_share: float = 0.0  # spread: the share of the cells that carry the key's own signs, not the message (a presence test)
     read_highpass: float = 1.5  # spread reading: the residual's slow part taken off (Gaussian sigma, px; `models.spread.whiten`)
     read_window: float = 2.0  # spread reading: the window of the residual's local variance (sigma, px)
@@ -112,7 +110,7 @@ class WatermarkModel(nn.Module):
                                                              config.pattern_seed, config.coarse_chips, config.coarse_below,
                                                              config.fine_chips, config.fine_above, config.bit_block,
                                                              config.pilot_share, config.pilot_block, config.pilot_gain,
-                                                             config.pilot_chips, config.density_power, config.density_limit)
+                                                             config.pilot_chips)
             elif config.texture_encoder == "surface":
                 self.texture_encoder = SurfaceCodeEncoder(n, config.chips, config.mark_colour, config.texture_psnr,
                                                           config.activity_window, config.activity_floor,

@@ -116,39 +116,6 @@ def _texel_coverage(corners, used):  # pragma: no cover - compiled
                 used[int(math.floor(y0 + t * (y1 - y0))) % height, int(math.floor(x0 + t * (x1 - x0))) % width] = True
 
 
-@numba.njit(cache=True)
-def _texel_sums(corners, values, sums):  # pragma: no cover - compiled
-    height, width = sums.shape
-    for f in range(corners.shape[0]):
-        xs = np.empty(3)
-        ys = np.empty(3)
-        for k in range(3):  # texel coordinates as in _texel_coverage
-            xs[k] = corners[f, k, 0] * width
-            ys[k] = (1.0 - corners[f, k, 1]) * height
-        area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0])
-        if abs(area) <= 1e-12:
-            continue
-        inv_area = 1.0 / area
-        for row in range(int(math.ceil(min(ys[0], ys[1], ys[2]) - 0.5)), int(math.floor(max(ys[0], ys[1], ys[2]) - 0.5)) + 1):
-            py = row + 0.5
-            for col in range(int(math.ceil(min(xs[0], xs[1], xs[2]) - 0.5)), int(math.floor(max(xs[0], xs[1], xs[2]) - 0.5)) + 1):
-                px = col + 0.5
-                l0 = ((xs[1] - px) * (ys[2] - py) - (xs[2] - px) * (ys[1] - py)) * inv_area
-                l1 = ((xs[2] - px) * (ys[0] - py) - (xs[0] - px) * (ys[2] - py)) * inv_area
-                if l0 >= 0.0 and l1 >= 0.0 and l0 + l1 <= 1.0:
-                    sums[row % height, col % width] += values[f]
-
-
-def texel_sums(corners: torch.Tensor, values: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(height, width) float64: at each texel of a height x width texture, the sum of `values` (F,) over
-    the triangles with UV corners `corners` (F, 3, 2) that cover its centre (wrapped, as `texel_coverage`;
-    texels only under an edge get nothing)."""
-    sums = np.zeros((height, width), dtype=np.float64)
-    _texel_sums(np.ascontiguousarray(corners.detach().to("cpu", torch.float64).numpy()),
-                np.ascontiguousarray(values.detach().to("cpu", torch.float64).numpy()), sums)
-    return torch.from_numpy(sums)
-
-
 def texel_coverage(corners: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """The texels (height, width) bool of a height x width texture that triangles with UV corners
     `corners` (F, 3, 2) cover, wrapped (a repeating texture): those whose centre a triangle covers and
