@@ -66,3 +66,44 @@ def _sample_stack(textures: torch.Tensor, uv: torch.Tensor, texture_index: torch
     top = torch.lerp(padded.index_select(0, base), padded.index_select(0, base + 1), wx)
     bottom = torch.lerp(padded.index_select(0, base + width + 2), padded.index_select(0, base + width + 3), wx)
     return torch.lerp(top, bottom, wy)
+
+
+def texel_footprint(uvs: torch.Tensor, fragments, sizes: torch.Tensor, anisotropy: float = 1.0) -> torch.Tensor:
+    """How many texels a pixel spans at each fragment (P,), as a GPU picks a mipmap level: the UV's
+    screen-space derivatives from the face's corners (affine within a face), in texels of the fragment's
+    texture (`sizes` (P, 2): its width and height), the longer axis over `anisotropy` or the shorter,
+    whichever is larger. uvs (B or 1, V, 2)."""
+    from .rasterizer import gather_corners
+
+    corner_uv = gather_corners(uvs, fragments.batch, fragments.vertex).double()  # (P, 3, 2)
+    xy = fragments.corners_xy.detach().double()
+    screen = torch.stack([xy[:, 1] - xy[:, 0], xy[:, 2] - xy[:, 0]], -1)  # (P, 2 [x, y], 2 [edge])
+    texel = torch.stack([corner_uv[:, 1] - corner_uv[:, 0], corner_uv[:, 2] - corner_uv[:, 0]], -1)
+    texel = texel * sizes.double()[:, :, None]
+    determinant = screen[:, 0, 0] * screen[:, 1, 1] - screen[:, 0, 1] * screen[:, 1, 0]
+    ok = determinant.abs() > 1e-9
+    inverse = torch.stack([torch.stack([screen[:, 1, 1], -screen[:, 0, 1]], -1),
+                           torch.stack([-screen[:, 1, 0], screen[:, 0, 0]], -1)], 1) / torch.where(ok, determinant, 1.0)[:, None, None]
+    jacobian = texel @ inverse  # (P, 2 [u, v], 2 [x, y]): texels per pixel along x and y
+    along = jacobian.norm(dim=1)  # (P, 2)
+    longer, shorter = along.amax(1), along.amin(1)
+    rho = torch.maximum(longer / anisotropy, shorter)
+    return torch.where(ok, rho, torch.zeros_like(rho)).to(uvs.dtype)
+
+
+def sample_mipmapped(texture: torch.Tensor, uv: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
+    """Trilinear lookup of one texture (C, H, W) at uv (P, 2), `rho` (P,) texels a pixel spans: the
+    two mipmap levels (2 x 2 box means, as GPUs build them) around log2(rho), each bilinear, mixed."""
+    levels = [texture]
+    while min(levels[-1].shape[-2:]) >= 2:
+        levels.append(F.avg_pool2d(levels[-1][None], 2)[0])
+    lod = torch.log2(rho.clamp_min(1.0)).clamp(0.0, len(levels) - 1)
+    low = lod.floor().long()
+    mix = (lod - low)[:, None].to(texture.dtype)
+    out = torch.zeros(len(uv), texture.shape[0], dtype=texture.dtype)
+    for level in torch.unique(low).tolist():
+        chosen = torch.nonzero(low == level).squeeze(1)
+        below = sample_texture(levels[level], uv[chosen])
+        above = sample_texture(levels[min(level + 1, len(levels) - 1)], uv[chosen])
+        out[chosen] = below + mix[chosen] * (above - below)
+    return out
