@@ -220,14 +220,14 @@ def _linear_if_better(mesh, image, cameras, footprint, found, sampled, before, a
     misfit = linear_light.detail_misfit(found.seen, after, pixel, shape)
     if misfit <= linear_light.TRY_ABOVE ** 2:
         return found, sampled, before, after
-    best, best_misfit = (found, sampled, before, after), linear_light.PICK_BELOW * misfit
-    for candidate in linear_light.linear_prediction(mesh, image, cameras, footprint, found):
-        linear = candidate[0].expected if candidate[1] is None else candidate[1].expected
-        through = saved(linear)
-        candidate_misfit = linear_light.detail_misfit(found.seen, through, pixel, shape)
-        if candidate_misfit < best_misfit:
-            best, best_misfit = (candidate[0], candidate[1], linear, through), candidate_misfit
-    return best
+    candidate = linear_light.linear_prediction(mesh, image, cameras, footprint, found)
+    if candidate is None:
+        return found, sampled, before, after
+    linear = candidate[0].expected if candidate[1] is None else candidate[1].expected
+    through = saved(linear)
+    if linear_light.detail_misfit(found.seen, through, pixel, shape) >= linear_light.PICK_BELOW * misfit:
+        return found, sampled, before, after
+    return candidate[0], candidate[1], linear, through
 
 
 OWN_MARK_SCALES = (0.5, 1.0)  # `own_mark_pvalue`'s whitening windows, in cells (docs/payload.md: measured against (2.0,))
