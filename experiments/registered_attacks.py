@@ -22,21 +22,6 @@ ATTACKS = "none,jpeg90,jpeg75,jpeg50,webp80,resize0.5,resize0.75,resize1.5,crop0
 FIELDS = ("detected", "exact", "named", "bit_acc")
 
 
-class _Slice:
-    """Test meshes [start, start + count) of a dataset, as `evaluate_registered` takes one."""
-
-    def __init__(self, dataset, start: int, count: int):
-        self.dataset, self.start = dataset, start
-        self.count = max(0, min(count, len(dataset) - start))
-        self.rows = dataset.rows[start:start + self.count]
-
-    def __len__(self):
-        return self.count
-
-    def __getitem__(self, index):
-        return self.dataset[self.start + index]
-
-
 def run(args) -> None:
     import torch
 
@@ -45,10 +30,12 @@ def run(args) -> None:
     from meshseal.evaluation.attacks import parse
     from meshseal.evaluation.evaluate import evaluate_registered
     from meshseal.threads import configure
+    from robust_curve import _Subset  # a slice of a dataset, as `evaluate_registered` takes one
 
     configure()
     model = load(args.model).model
-    dataset = _Slice(MeshDataset(args.data, "test"), args.start, args.meshes)
+    test = MeshDataset(args.data, "test")
+    dataset = _Subset(test, list(range(args.start, min(args.start + args.meshes, len(test)))))
     torch.manual_seed(0)
     attacks = [name for name in parse(args.attacks) if name != "none"]
     result = evaluate_registered(model, dataset, len(dataset), args.seed, 256, "seed", None, views=1,
