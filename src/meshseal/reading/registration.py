@@ -865,19 +865,19 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
     screen (a flat or far object), a round moves only part of the way along that valley, so it takes
     several. A least-squares step only ever lowers its round's cost, but a round's light, fitted at a
     camera a tenth of a pixel off, can pull the next round further off: each round's start camera is
-    scored by its own light fit's misfit (and the last round's camera measured the same way), and
-    the best-scored camera is the result. A move of more than POLISH_MAX pixels is not taken (a
+    scored by the misfit of its point samples under its own light fit (and the last round's camera
+    measured the same way), and the best-scored camera is the result. A move of more than POLISH_MAX pixels is not taken (a
     picture the original explains poorly, from another engine, can pull the pose where the texture
     stage and the silhouette did not put it).
 
     A picture made smaller after it was rendered (a page's thumbnail, a halved screenshot) averaged
     several rendered pixels into each of its own: compared with point samples it pulls the pose off by
-    a tenth of a pixel or more. So each round also renders its start camera's view at 1 / f the
+    a tenth of a pixel or more. So the first round also renders its start camera's view at 1 / f the
     window's size for each factor f of POLISH_FOOTPRINTS and resizes it to the window as an image
     tool would; a resized render that explains the picture under POLISH_FOOTPRINT_GAIN of the point
-    samples' misfit is the one the round's renders are made with. The choice is made again each round
-    because at a camera a few tenths of a pixel off a smoother render explains even a picture that
-    was never resized better than point samples do. An enlarged picture (f = 1.5) is
+    samples' misfit is the one the round's renders are made with. While one is, the next round
+    chooses again: at a camera a few tenths of a pixel off a smoother render explains even a picture
+    that was never resized better than point samples do. An enlarged picture (f = 1.5) is
     smoother than point samples too, but its own pixel grid does not line up with the window's render
     at 1 / f, so it keeps point samples: its candidate is there so that its smoothness is not taken for
     a smaller picture's.
@@ -889,7 +889,8 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
         first = _object_window(camera, picture, mask > 0.5, POLISH_WINDOW)
         crop, side = first.image[None], first.side
         crop_mask = first.seen[None].to(picture.dtype)
-        rounds = []  # (each round's start camera's misfit per value under its best sampling, that camera)
+        rounds = []  # (each round's start camera's point samples' misfit per value, that camera)
+        footprint = None  # how the picture sampled the object: chosen in the first round, again while not point samples
         for index in range(POLISH_ROUNDS + 1):  # the last only measures the camera the rounds ended at
             window = replace(first, camera=first.seen_from(camera))
             view = _relit_view(mesh, window.camera, crop, crop_mask, margin=2)
@@ -910,21 +911,23 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(deltas), -1).double()
 
             # How the picture sampled the object, judged at this round's camera: at a start a few tenths
-            # of a pixel off, a smoother render fits a picture that was not resized better than its point
-            # samples do, and every round after would be made with the wrong footprint.
+            # of a pixel off, a smoother render explains even a picture that was never resized better
+            # than point samples do, so a resized footprint is judged again each round (point samples,
+            # once they explain the picture best, stay). Each round's start is scored by its point
+            # samples' misfit per value.
             zero = torch.zeros(1, 6, dtype=torch.float64)
-            starts = [rendered(zero, f)[0] for f in POLISH_FOOTPRINTS]
+            factors = POLISH_FOOTPRINTS if footprint != 1.0 else (1.0,)
+            starts = [rendered(zero, f)[0] for f in factors]
             fits = [float(((target - start_render) ** 2).sum()) for start_render in starts]
             best = min(range(len(fits)), key=fits.__getitem__)
-            footprint = POLISH_FOOTPRINTS[best]
-            point = fits[POLISH_FOOTPRINTS.index(1.0)] if 1.0 in POLISH_FOOTPRINTS else math.inf
+            point = fits[factors.index(1.0)] if 1.0 in factors else math.inf
+            footprint = factors[best]
             if footprint > 1.0 or fits[best] >= POLISH_FOOTPRINT_GAIN * point:
                 footprint = 1.0
-            at_start = starts[POLISH_FOOTPRINTS.index(footprint)] if footprint in POLISH_FOOTPRINTS else \
-                rendered(zero, footprint)[0]
+            at_start = starts[factors.index(footprint)] if footprint in factors else rendered(zero, footprint)[0]
             residual = target - at_start
             cost = float((residual ** 2).sum())
-            rounds.append((fits[best] / max(1, len(target)), camera))
+            rounds.append((point / max(1, len(target)), camera))
             if index == POLISH_ROUNDS:
                 break
 
