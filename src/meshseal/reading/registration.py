@@ -74,8 +74,7 @@ SHARPEN_STEPS = (0.2, 0.025)  # pixels: `sharpen`'s first and last step
 SHARPEN_RENDERS = 150  # ... and at most this many renders
 SHARPEN_WINDOW = 256  # ... of at most this many pixels a side around the object's centre
 POLISH_STEP = 0.1  # pixels: `polish`'s central differences
-POLISH_ROUNDS = 6  # ... its rounds at most, each with the light refitted, the footprint chosen and the Jacobian taken afresh ...
-POLISH_RESIZED_ROUNDS = 2  # ... of them under a resized footprint (a shrunk picture's few pixels: more rounds drift) ...
+POLISH_ROUNDS = 2  # ... its rounds, each with the light refitted and the Jacobian taken afresh ...
 POLISH_AGAIN = 0.02  # ... the next round only where the last moved the camera by this many pixels or more ...
 POLISH_ITERATIONS = 6  # ... its Gauss-Newton steps a round at most ...
 POLISH_WINDOW = 256  # ... on at most this many pixels a side around the object's centre (a large picture: its central part) ...
@@ -862,28 +861,19 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
     once per round and kept for its Gauss-Newton steps (the pose moves by hundredths of a pixel, the
     Jacobian hardly changes), each step halved twice before the round ends; the light is refitted
     at the start of each of POLISH_ROUNDS rounds, a round made only where the last one moved the
-    camera by POLISH_AGAIN pixels or more. Where a turn and a shift nearly undo each other on the
-    screen (a flat or far object), a round moves only part of the way along that valley, so it takes
-    several. A least-squares step only ever lowers its round's cost, but a round's light, fitted at a
-    camera a tenth of a pixel off, can pull the next round further off: each round's start camera is
-    scored by its misfit under its own light fit (and the last round's camera measured the same way),
-    and the best-scored camera among those of the footprint the rounds ended with is the result. A
-    move of more than POLISH_MAX pixels is not taken (a picture the original explains poorly, from
+    camera by POLISH_AGAIN pixels or more. A least-squares step only ever lowers the cost, and
+    a move of more than POLISH_MAX pixels is not taken (a picture the original explains poorly, from
     another engine, can pull the pose where the texture stage and the silhouette did not put it).
 
     A picture made smaller after it was rendered (a page's thumbnail, a halved screenshot) averaged
     several rendered pixels into each of its own: compared with point samples it pulls the pose off by
-    a tenth of a pixel or more. So the first round also renders its start camera's view at 1 / f the
+    a tenth of a pixel or more. So the first round also renders the start camera's view at 1 / f the
     window's size for each factor f of POLISH_FOOTPRINTS and resizes it to the window as an image
     tool would; a resized render that explains the picture under POLISH_FOOTPRINT_GAIN of the point
-    samples' misfit is the one the round's renders are made with. While one is, the next round judges
-    again and leaves it only for a footprint that explains the picture better still: at a camera a
-    few tenths of a pixel off a smoother render explains even a picture that was never resized better
-    than point samples do. Under a resized footprint the rounds stop after POLISH_RESIZED_ROUNDS (a
-    shrunk picture has few pixels, and more rounds drifted: halved pictures read less). An enlarged
-    picture (f = 1.5) is smoother than point samples too, but its own pixel grid does not line up with
-    the window's render at 1 / f, so it keeps point samples: its candidate is there so that its
-    smoothness is not taken for a smaller picture's.
+    samples' misfit is the one every render of the polish is made with. An enlarged picture (f = 1.5) is
+    smoother than point samples too, but its own pixel grid does not line up with the window's render
+    at 1 / f, so it keeps point samples: its candidate is there so that its smoothness is not taken for
+    a smaller picture's.
     Nothing here looks at a key: the reading's p-values stay as they are."""
     with torch.no_grad():
         start, renderer = camera, MeshRenderer()
@@ -892,18 +882,18 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
         first = _object_window(camera, picture, mask > 0.5, POLISH_WINDOW)
         crop, side = first.image[None], first.side
         crop_mask = first.seen[None].to(picture.dtype)
-        rounds = []  # (each round's footprint, its start camera's misfit per value under it, that camera)
-        footprint = None  # how the picture sampled the object: chosen in the first round, again while not point samples
-        for index in range(POLISH_ROUNDS + 1):  # the last only measures the camera the rounds ended at
+        footprint = None  # chosen in the first round
+        for _ in range(POLISH_ROUNDS):
             window = replace(first, camera=first.seen_from(camera))
             view = _relit_view(mesh, window.camera, crop, crop_mask, margin=2)
             if view is None:
-                break
+                return start
             fit, inside = view
             band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(inside, 0.0, POLISH_HIGHPASS)
             target = band(crop)[0].permute(1, 2, 0)[inside[0]].reshape(-1).double()
 
-            def rendered(deltas: torch.Tensor, factor: float) -> torch.Tensor:
+            def rendered(deltas: torch.Tensor, factor: float | None = None) -> torch.Tensor:
+                factor = footprint if factor is None else factor
                 lights = fit.lights[[0] * len(deltas)]
                 size = max(8, round(side / factor))
                 image = renderer(fit.relit, _moved(window.camera, deltas.to(picture.dtype), side), lights,
@@ -913,40 +903,35 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                                           align_corners=False)
                 return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(deltas), -1).double()
 
-            # How the picture sampled the object, judged at this round's camera: at a start a few tenths
-            # of a pixel off, a smoother render explains even a picture that was never resized better
-            # than point samples do, so a resized footprint is judged again each round, and left only
-            # for one that explains the picture better still (point samples, once chosen, stay).
-            zero = torch.zeros(1, 6, dtype=torch.float64)
-            factors = POLISH_FOOTPRINTS if footprint != 1.0 else (1.0,)
-            starts = [rendered(zero, f)[0] for f in factors]
-            fits = [float(((target - start_render) ** 2).sum()) for start_render in starts]
-            best = min(range(len(fits)), key=fits.__getitem__)
-            point = fits[factors.index(1.0)] if 1.0 in factors else math.inf
-            chosen, footprint = footprint, factors[best]
-            if footprint > 1.0 or (chosen is None and fits[best] >= POLISH_FOOTPRINT_GAIN * point):
-                footprint = 1.0
-            at_start = starts[factors.index(footprint)] if footprint in factors else rendered(zero, footprint)[0]
-            residual = target - at_start
-            cost = float((residual ** 2).sum())
-            rounds.append((footprint, cost / max(1, len(target)), camera))
-            if index == POLISH_ROUNDS or (footprint != 1.0 and index == POLISH_RESIZED_ROUNDS):
-                break
+            at_start = None  # the start camera's render under the chosen footprint, where already made
+            if footprint is None:  # the first round: how the picture sampled the object, at the start camera
+                zero = torch.zeros(1, 6, dtype=torch.float64)
+                starts = [rendered(zero, f)[0] for f in POLISH_FOOTPRINTS]
+                fits = [float(((target - start_render) ** 2).sum()) for start_render in starts]
+                best = min(range(len(fits)), key=fits.__getitem__)
+                footprint = POLISH_FOOTPRINTS[best]
+                point = fits[POLISH_FOOTPRINTS.index(1.0)] if 1.0 in POLISH_FOOTPRINTS else math.inf
+                if footprint > 1.0 or fits[best] >= POLISH_FOOTPRINT_GAIN * point:
+                    footprint = 1.0
+                if footprint in POLISH_FOOTPRINTS:
+                    at_start = starts[POLISH_FOOTPRINTS.index(footprint)]
 
             moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
-            both = rendered(moves, footprint)
+            both = rendered(moves)
             jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
             normal = jacobian.T @ jacobian
             scale = float(normal.diagonal().mean())
             if not scale > 1e-12:  # nothing to align on
-                break
+                return start
             solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
             delta = torch.zeros(6, dtype=torch.float64)
+            residual = target - (rendered(delta[None])[0] if at_start is None else at_start)
+            cost = float((residual ** 2).sum())
             for _ in range(POLISH_ITERATIONS):
                 update = torch.linalg.solve(solve, jacobian.T @ residual)
                 length = float(update.abs().max())
                 for fraction in (1.0, 0.5, 0.25):
-                    trial = target - rendered((delta + fraction * update)[None], footprint)[0]
+                    trial = target - rendered((delta + fraction * update)[None])[0]
                     if float((trial ** 2).sum()) < cost:
                         break
                 else:
@@ -957,15 +942,7 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                     break
             camera = _from_window(window, delta.to(picture.dtype), camera)
             if float(delta.abs().max()) < POLISH_AGAIN:  # the light refitted at a camera this near would change nothing
-                rounds[-1] = (*rounds[-1][:2], camera)
                 break
-        if not rounds:
-            return start
-        # The camera whose own light fit explains the picture best under the footprint the rounds ended
-        # with (misfits under different footprints do not compare): a round's light, fitted at a camera
-        # a tenth of a pixel off, can pull the next round further off (a turn and a shift that nearly
-        # undo each other on the screen are barely told apart), and the misfit then rises.
-        camera = min((kept for kept in rounds if kept[0] == rounds[-1][0]), key=lambda kept: kept[1])[2]
         return camera if pose_error(mesh, first.camera, first.seen_from(camera), side, side) <= POLISH_MAX else start
 
 
