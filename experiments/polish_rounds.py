@@ -15,7 +15,8 @@ detected at FPR 1e-6 and read exactly, the pose error (mean screen distance to t
 surface points) at the start and after, and the polish's CPU seconds a picture; `--jsonl` writes one row a
 picture. The p-value is the first reading's without the second look's Bonferroni factor (x2 or x3, the
 same for every setting): the figures compare settings, not `meshseal detect`'s final rates, which
-`registered_attacks.py` measures.
+`registered_attacks.py` measures. Another code's polish reads the same captures through `PYTHONPATH` (its `src`
+exported with `git archive`, e.g. commit 6eddc81's rounds, measured and reverted: docs/reading.md).
 """
 
 from __future__ import annotations
