@@ -5,7 +5,7 @@ before its second look), so that polish settings compare on the same starts in a
 
     python experiments/polish_rounds.py capture --data data --start S --meshes 50 --out C.pt
     python experiments/polish_rounds.py read C.pt [C2.pt ...] [--set POLISH_ROUNDS=2 ...] [--jsonl OUT]
-        [--from-truth] [--codec jpeg:75 [--codec-renders]]
+        [--from-truth] [--codec jpeg:75]
 
 `capture` runs `evaluate_registered` (the pictures, views and messages of `registered_attacks.py
 --start S --meshes N`: one seeded 256^2 view each, marked as `meshseal embed` marks, PNG) and keeps, for
@@ -18,7 +18,7 @@ picture. The p-value is the first reading's without the second look's Bonferroni
 same for every setting): the figures compare settings, not `meshseal detect`'s final rates, which
 `registered_attacks.py` measures. `--from-truth` polishes from the true camera instead (how far the
 polish's own minimum lies from it); `--codec` saves each picture through a codec first (the start is still
-the PNG's registered camera) and `--codec-renders` passes the polish's renders through the same codec.
+the PNG's registered camera).
 Another code's polish reads the same captures through `PYTHONPATH` (its `src`
 exported with `git archive`, e.g. commit 6eddc81's rounds, measured and reverted: docs/reading.md).
 """
@@ -123,12 +123,10 @@ def read(args) -> None:
                 continue
             pixels = _coded(pixels, codec)
             picture = torch.from_numpy(pixels).permute(2, 0, 1)[None].to(picture.dtype)
-        registration._RENDER_HOOK = _codec_hook(codec) if args.codec_renders else None
         started = time.process_time()
         camera = registration.polish(record["mesh"], record["known" if args.from_truth else "camera"], picture,
                                      record["mask"])
         seconds = time.process_time() - started
-        registration._RENDER_HOOK = None
         decision = watermarker.decide([watermarker.read(pixels, record["original"], camera=camera)])
         rows.append({"mesh": index, "p": decision.p_value, "detected": bool(decision.detected),
                      "exact": decision.message == record["identity"], "seconds": seconds,
@@ -153,35 +151,6 @@ def _coded(pixels, codec):
     return saved.astype(np.float32) / 255
 
 
-def _codec_hook(codec):
-    """`registration._RENDER_HOOK` passing each of the polish's window renders through `codec`: pasted
-    over the picture's object pixels (the picture's own background around them, as the codec saw it),
-    saved, and the window cut out again."""
-    import numpy as np
-    import torch
-
-    from meshseal.reading.compression import _codec_round_trip
-
-    def hook(image, window, picture, mask):
-        half = window.box[2]
-        left, top, side = round(window.box[0] - half), round(window.box[1] - half), image.shape[-1]
-        height, width = picture.shape[-2:]
-        base = (picture[0].permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-        on = (mask[0] > 0.5).numpy()
-        r0, c0, r1, c1 = max(0, top), max(0, left), min(height, top + side), min(width, left + side)
-        out = []
-        for render in (image.permute(0, 2, 3, 1).clamp(0, 1) * 255).round().to(torch.uint8).numpy():
-            canvas = base.copy()
-            inside = render[r0 - top:r1 - top, c0 - left:c1 - left]
-            canvas[r0:r1, c0:c1][on[r0:r1, c0:c1]] = inside[on[r0:r1, c0:c1]]
-            render = render.copy()
-            render[r0 - top:r1 - top, c0 - left:c1 - left] = _codec_round_trip(canvas, codec)[r0:r1, c0:c1]
-            out.append(torch.from_numpy(render.astype(np.float32) / 255).permute(2, 0, 1))
-        return torch.stack(out).to(image.dtype)
-
-    return hook
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -199,7 +168,6 @@ def main() -> None:
     again.add_argument("--jsonl")
     again.add_argument("--from-truth", action="store_true", help="polish from the true camera (where the polish's own minimum is)")
     again.add_argument("--codec", help="FORMAT:QUALITY (jpeg:75, webp:80): the picture saved so before the polish and the reading")
-    again.add_argument("--codec-renders", action="store_true", help="... and each polish render passed through it too")
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "experiments"))  # robust_curve's dataset slice
     (capture if args.command == "capture" else read)(args)

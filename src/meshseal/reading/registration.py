@@ -81,12 +81,6 @@ POLISH_WINDOW = 256  # ... on at most this many pixels a side around the object'
 POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels (0: as they are) ...
 POLISH_MAX = 0.5  # ... and a move of more than this many pixels (mean screen distance) not taken
 POLISH_FOOTPRINTS = (1.0, 0.5, 0.75, 1.5)  # how the picture may have sampled the object: a render at 1 / f its size resized to it ...
-POLISH_BASIS = "turn"  # measured, not taken: "orbit" (the first two coordinates turn about the object's centre)
-POLISH_ORBIT_STEP = 1.0  # ... the orbit's central differences this many times POLISH_STEP
-POLISH_MARQUARDT = 0.0  # ... damping by this share of the normal matrix's own diagonal instead of TEXTURE_DAMPING's
-POLISH_BROYDEN = False  # ... the Jacobian updated along each step tried (Broyden), the round going on after a failed step
-POLISH_LOWPASS = ()  # ... the picture and renders also blurred by this many pixels in the rounds listed (then 0)
-_RENDER_HOOK = None  # ... each window render passed through this (experiments: the picture's codec)
 POLISH_FOOTPRINT_GAIN = 0.9  # ... a resized one used only where it fits under this share of the point samples' misfit (1.5: never)
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
@@ -889,30 +883,24 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
         crop, side = first.image[None], first.side
         crop_mask = first.seen[None].to(picture.dtype)
         footprint = None  # chosen in the first round
-        basis = torch.eye(6, dtype=torch.float64)
-        if POLISH_BASIS == "orbit":  # a turn with the shift that keeps the window's centre in place
-            basis[3, 0], basis[4, 1] = 1.0, -1.0
-        for round_ in range(POLISH_ROUNDS):
-            low = POLISH_LOWPASS[round_] if round_ < len(POLISH_LOWPASS) else 0.0
+        for _ in range(POLISH_ROUNDS):
             window = replace(first, camera=first.seen_from(camera))
             view = _relit_view(mesh, window.camera, crop, crop_mask, margin=2)
             if view is None:
                 return start
             fit, inside = view
-            band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(inside, low, POLISH_HIGHPASS)
+            band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(inside, 0.0, POLISH_HIGHPASS)
             target = band(crop)[0].permute(1, 2, 0)[inside[0]].reshape(-1).double()
 
             def rendered(deltas: torch.Tensor, factor: float | None = None) -> torch.Tensor:
                 factor = footprint if factor is None else factor
                 lights = fit.lights[[0] * len(deltas)]
                 size = max(8, round(side / factor))
-                image = renderer(fit.relit, _moved(window.camera, (deltas @ basis.T).to(picture.dtype), side), lights,
+                image = renderer(fit.relit, _moved(window.camera, deltas.to(picture.dtype), side), lights,
                                  size, size).image
                 if size != side:  # as an image tool resizes (bicubic, antialiased when it shrinks)
                     image = F.interpolate(image, size=(side, side), mode="bicubic", antialias=size > side,
                                           align_corners=False)
-                if _RENDER_HOOK is not None:
-                    image = _RENDER_HOOK(image, first, picture, mask)
                 return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(deltas), -1).double()
 
             at_start = None  # the start camera's render under the chosen footprint, where already made
@@ -928,22 +916,14 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 if footprint in POLISH_FOOTPRINTS:
                     at_start = starts[POLISH_FOOTPRINTS.index(footprint)]
 
-            steps = torch.full((6,), POLISH_STEP, dtype=torch.float64)
-            if POLISH_BASIS == "orbit":
-                steps[:2] *= POLISH_ORBIT_STEP
-            both = rendered(torch.cat([torch.diag(steps), -torch.diag(steps)]))
-            jacobian = ((both[:6] - both[6:]) / (2 * steps[:, None])).T
+            moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
+            both = rendered(moves)
+            jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
             normal = jacobian.T @ jacobian
             scale = float(normal.diagonal().mean())
             if not scale > 1e-12:  # nothing to align on
                 return start
-
-            def damped(normal):
-                if POLISH_MARQUARDT:
-                    return normal + POLISH_MARQUARDT * torch.diag(normal.diagonal())
-                return normal + TEXTURE_DAMPING * float(normal.diagonal().mean()) * torch.eye(6, dtype=torch.float64)
-
-            solve = damped(normal)
+            solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
             delta = torch.zeros(6, dtype=torch.float64)
             residual = target - (rendered(delta[None])[0] if at_start is None else at_start)
             cost = float((residual ** 2).sum())
@@ -952,25 +932,16 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 length = float(update.abs().max())
                 for fraction in (1.0, 0.5, 0.25):
                     trial = target - rendered((delta + fraction * update)[None])[0]
-                    if POLISH_BROYDEN:  # the render's change along the step tried: the Jacobian along it
-                        tried = fraction * update
-                        jacobian = jacobian + torch.outer(residual - trial - jacobian @ tried, tried) / float(tried @ tried)
                     if float((trial ** 2).sum()) < cost:
                         break
                 else:
-                    if not POLISH_BROYDEN:
-                        break
-                    solve = damped(jacobian.T @ jacobian)
-                    continue
-                if POLISH_BROYDEN:
-                    solve = damped(jacobian.T @ jacobian)
+                    break
                 delta, residual = delta + fraction * update, trial
                 cost = float((residual ** 2).sum())
                 if fraction * length < TEXTURE_DONE:
                     break
-            delta = basis @ delta
             camera = _from_window(window, delta.to(picture.dtype), camera)
-            if float(delta.abs().max()) < POLISH_AGAIN and round_ + 1 >= len(POLISH_LOWPASS):  # the light refitted at a camera this near would change nothing
+            if float(delta.abs().max()) < POLISH_AGAIN:  # the light refitted at a camera this near would change nothing
                 break
         return camera if pose_error(mesh, first.camera, first.seen_from(camera), side, side) <= POLISH_MAX else start
 
