@@ -57,7 +57,7 @@ def meshes(args):
 
     blind = not meshseal.load(args.model).informed
     dataset = MeshDataset(args.data, "test", seed=args.seed, texture_kinds=("noise", "real") if blind else None)
-    for index in range(min(args.meshes, len(dataset))):
+    for index in (args.indices if args.indices else range(min(args.meshes, len(dataset)))):
         item = dataset[index]
         yield item["id"], item_mesh(item)
 
@@ -85,6 +85,8 @@ def main() -> None:
     parser.add_argument("--model", default=None, help="shipped model (default: the default); blind ones read alone")
     parser.add_argument("--data", type=Path, default=None, help="dataset: its test split instead of the fixtures")
     parser.add_argument("--meshes", type=int, default=60)
+    parser.add_argument("--indices", type=int, nargs="+", default=None,
+                        help="these test meshes instead of the first --meshes (`experiments/minified_grid.py` prints some)")
     parser.add_argument("--views", type=int, default=2)
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--sampler", choices=("seed", "any"), default="seed")

@@ -56,11 +56,12 @@ def test_names_parse_and_unknown_ones_are_refused():
 
 
 def test_pictures_are_sorted_into_the_kinds_the_report_splits_out():
-    """`picture_kinds`: a texture on its fine / coarse grid is magnified / minified, an object mostly at
+    """`picture_kinds`: a texture on its fine / coarse grid is magnified / minified (on its own grid,
+    minified where its cells are narrow), an object mostly at
     white clips, one under SMALL_OBJECT pixels is small, and a picture of none of these is plain."""
     import torch
 
-    from meshseal.evaluation.evaluate import SMALL_OBJECT, picture_kinds
+    from meshseal.evaluation.evaluate import MINIFIED_BELOW, SMALL_OBJECT, picture_kinds
     from meshseal.models.spread import SpreadSpectrumEncoder
 
     encoder = SpreadSpectrumEncoder(64, chips=128, coarse_chips=64, fine_chips=512)
@@ -73,3 +74,7 @@ def test_pictures_are_sorted_into_the_kinds_the_report_splits_out():
     assert picture_kinds(encoder, 128, pictures, masks) == [["plain"], ["clipped"], ["small"]]
     assert picture_kinds(encoder, 512, pictures, masks)[0] == ["magnified"]
     assert picture_kinds(encoder, 64, pictures, masks)[1] == ["minified", "clipped"]
+    # On the model's own grid, cells under MINIFIED_BELOW px in a standard view are minified too
+    # (a mark without a coarser grid for them), and cells just over it are not.
+    assert picture_kinds(encoder, 128, pictures, masks, MINIFIED_BELOW * 0.9)[0] == ["minified"]
+    assert picture_kinds(encoder, 128, pictures, masks, MINIFIED_BELOW * 1.1)[0] == ["plain"]

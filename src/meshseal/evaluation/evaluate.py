@@ -18,7 +18,7 @@ import torch
 from ..data.dataset import collate
 from ..models import WatermarkModel
 from ..render import MeshRenderer
-from ..methods.batches import batch_mark_grid, batch_texels_used, charted_item, unpadded
+from ..methods.batches import batch_cell_width, batch_mark_grid, batch_texels_used, charted_item, unpadded
 from .asset_attacks import ASSET_ATTACKS
 from .asset_attacks import apply as attack_asset
 from .attacks import GEOMETRIC
@@ -39,6 +39,10 @@ from .metrics import (
 # a mean: an object this small (pixels), highlights that clip (this share of the object's pixels at 255).
 SMALL_OBJECT = 1500
 CLIPPED = 0.2
+# A texture whose cells are under this many pixels wide in a standard view (`models.spread.cell_pixels`) is
+# minified even where the mark has no coarser grid for it: a picture point-samples such cells, and another
+# engine's mipmaps, a resized picture or a camera a tenth of a pixel off lose them (experiments/minified_grid.py).
+MINIFIED_BELOW = 0.75
 KIND_ORDER = ("plain", "magnified", "minified", "clipped", "small")
 
 
@@ -48,15 +52,19 @@ def attack_stream(name: str) -> int:
     return zlib.crc32(name.encode("utf-8"))
 
 
-def picture_kinds(encoder, grid: int | None, pictures: torch.Tensor, masks: torch.Tensor) -> list[list[str]]:
+def picture_kinds(encoder, grid: int | None, pictures: torch.Tensor, masks: torch.Tensor,
+                  cell_width: float | None = None) -> list[list[str]]:
     """The kinds each of a mesh's pictures (V, 3, H, W in [0, 1], object masks (V, H, W)) belongs to:
     `magnified` / `minified` texture (a spread mark (`encoder`) laid on its fine / coarse `grid`
-    because its cells would be over `fine_above` / under `coarse_below` pixels in a standard view),
+    because its cells would be over `fine_above` / under `coarse_below` pixels in a standard view; or,
+    on the model's own grid, its cells `cell_width` px wide there, under MINIFIED_BELOW),
     `clipped` (at least CLIPPED of the object's pixels at white in some channel), `small` (fewer than
     SMALL_OBJECT object pixels); the others are `plain`. A picture can be of several kinds."""
     scale = None
     if grid is not None and grid != encoder.chips:
         scale = "magnified" if grid == encoder.fine_chips else "minified" if grid == encoder.coarse_chips else None
+    elif cell_width is not None and cell_width < MINIFIED_BELOW:
+        scale = "minified"
     kinds = []
     for picture, mask in zip(pictures, masks):
         pixels = int(mask.sum())
@@ -162,6 +170,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             if calibrated:  # as `meshseal embed` marks it: within its FLIP budget
                 normals_marked, uvs_marked = normals, uvs
                 grid = batch_mark_grid(model.texture_encoder, batch)
+                cell_width = batch_cell_width(model.texture_encoder, batch)
                 mark = lambda at: model.texture_encoder(texture, message, at, payload.key_seed(None), grid, used)  # noqa: E731
                 if max_flip is None:
                     texture_marked, used_strength = mark(strength), strength
@@ -183,7 +192,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             seen = visibility(clean.image, pictures, shown)
             texture_psnr = float(shown_texture_psnr(texture_marked, texture, used)[0])
             pictures = torch.round(pictures * 255) / 255  # what a saved 8-bit PNG holds
-            kinds = picture_kinds(model.texture_encoder, grid, pictures, shown) if calibrated else [["plain"]] * views
+            kinds = (picture_kinds(model.texture_encoder, grid, pictures, shown, cell_width) if calibrated
+                     else [["plain"]] * views)
             asset_pictures = {}  # each asset attack's 8-bit pictures, rendered from the attacked marked asset
             marked = Mesh(positions[0], normals_marked[0], faces[0], uvs_marked[0],
                           materials=[Material(texture=texture_marked[0].permute(1, 2, 0))])

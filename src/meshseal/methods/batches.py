@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from ..models.spread import texels_used
+from ..models.spread import cell_pixels, texels_used
 from ..models.surface import texel_columns
 
 
@@ -41,6 +41,13 @@ def batch_mark_grid(encoder, batch: dict, index: int = 0) -> int:
     dataset batch (its padding left out), as `Watermarker.embed` picks it for that mesh."""
     positions, _, uvs, faces = unpadded(batch, index)
     return encoder.grid_for(positions, faces, uvs)
+
+
+def batch_cell_width(encoder, batch: dict, index: int = 0) -> float:
+    """How wide a cell of a spread mark's own grid (`encoder`) is in a standard view
+    (`models.spread.cell_pixels`) on item `index` of a dataset batch (its padding left out)."""
+    positions, _, uvs, faces = unpadded(batch, index)
+    return cell_pixels(positions, faces, uvs, encoder.chips)
 
 
 def batch_texels_used(batch: dict) -> torch.Tensor:
