@@ -10,9 +10,12 @@ and registered (`--register`), as PNG and after each attack, and the mark's visi
 
     python experiments/minified_grid.py --data data --below 0.75 --models default RUN/model.safetensors
         [--attacks none,jpeg90,jpeg75,jpeg50,webp80,resize0.5] [--register] [--views 1]
+    python experiments/minified_grid.py --data data --sheet docs/minified_engines.png --indices 61 60
 
 The meshes' indices are printed first (`experiments/engines.py --indices` renders the same meshes in
-Blender's engines).
+Blender's engines). `--sheet OUT.png --indices I ...` draws those test meshes instead, original and marked
+(the default, as `embed` marks), in our renderer, Eevee and Cycles (bpy needed), one seeded view each at
+256^2, each engine's marked-minus-original difference x8 below (grey: none).
 """
 
 from __future__ import annotations
@@ -39,6 +42,37 @@ def minified(dataset, below: float, chips: int = 64) -> list[int]:
     return chosen
 
 
+def sheet(dataset, indices: list[int], out: Path) -> None:
+    """The `--sheet` picture (see the module)."""
+    from dataclasses import replace
+
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    import meshseal
+    from engines import BACKGROUND, item_mesh
+    from meshseal.mesh import normalize, to_z_up
+    from meshseal.render import make_renderer
+    from meshseal.render.views import sample_views
+
+    watermarker, rows = meshseal.load("default"), []
+    renderers = {engine: make_renderer(engine) for engine in ("ours", "eevee", "cycles")}
+    for index in indices:
+        mesh = item_mesh(dataset[index])
+        pair = [normalize(to_z_up(replace(m, source=None))) for m in (mesh, watermarker.embed(mesh, "0001"))]
+        cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(index))
+        pictures, differences = [], []
+        for renderer in renderers.values():
+            original, marked = (renderer.render(m, cameras, lights, 256, 256, background=BACKGROUND)[0, ..., :3] for m in pair)
+            pictures += [original, marked]
+            differences += [(marked - original) * 8 + 0.5, torch.ones_like(original)]
+        rows += [torch.cat(pictures, 1), torch.cat(differences, 1)]
+    image = (torch.cat(rows, 0).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    Image.fromarray(image).save(out)
+    print(f"{out}: per mesh, original | marked in ours, Eevee, Cycles; below, marked - original x8")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT / "data")
@@ -48,6 +82,8 @@ def main() -> None:
     parser.add_argument("--register", action="store_true")
     parser.add_argument("--views", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--sheet", type=Path, default=None)
+    parser.add_argument("--indices", type=int, nargs="+", default=[61, 60])
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "experiments"))
     import torch
@@ -61,6 +97,8 @@ def main() -> None:
 
     configure()
     test = MeshDataset(args.data, "test")
+    if args.sheet is not None:
+        return sheet(test, args.indices, args.sheet)
     indices = minified(test, args.below)
     print(f"<!-- {len(indices)} test meshes with 64^2 cells under {args.below:g} px: {' '.join(map(str, indices))} -->", flush=True)
     attacks = parse(args.attacks)
