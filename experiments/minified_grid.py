@@ -76,7 +76,7 @@ def sheet(dataset, indices: list[int], out: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT / "data")
-    parser.add_argument("--below", type=float, default=0.75)
+    parser.add_argument("--below", type=float, default=None, help="px (default: evaluation.evaluate.MINIFIED_BELOW)")
     parser.add_argument("--models", nargs="+", default=["default"])
     parser.add_argument("--attacks", default="none,jpeg90,jpeg75,jpeg50,webp80,resize0.5")
     parser.add_argument("--register", action="store_true")
@@ -95,7 +95,10 @@ def main() -> None:
     from meshseal.threads import configure
     from robust_curve import _Subset
 
+    from meshseal.evaluation.evaluate import MINIFIED_BELOW
+
     configure()
+    args.below = MINIFIED_BELOW if args.below is None else args.below
     test = MeshDataset(args.data, "test")
     if args.sheet is not None:
         return sheet(test, args.indices, args.sheet)

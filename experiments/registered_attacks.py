@@ -4,7 +4,8 @@ view each, marked as `meshseal embed` marks (FLIP budget 0.03), saved without me
 `meshseal detect` reads them (registered, second look), as PNG and after each picture attack; each
 slice draws its own views and messages from the seed, so a slice's pictures are not those of a single
 run over all meshes. `--merge` adds slices up: per attack the pictures, detected, exact, named, the
-detected rate with the camera known (where the attack keeps the frame) and the mean seconds.
+detected rate with the camera known (where the attack keeps the frame) and the mean seconds; then the
+detected rates by kind of picture (plain, magnified, minified, clipped, small).
 
     python experiments/registered_attacks.py --data data --start 0 --meshes 50 --json A.json
         [--attacks none,jpeg90,jpeg75,jpeg50,webp80,resize0.5,resize0.75,resize1.5,crop0.8,screenshot]
@@ -46,7 +47,7 @@ def run(args) -> None:
     for name, entry in result.get("attacks", {}).items():
         rows[name] = {"pictures": entry["pictures"], "seconds": entry["seconds"],
                       "detected_known_camera": entry.get("detected_known_camera")} | {k: entry[k] for k in FIELDS}
-    payload = {"start": args.start, "meshes": len(dataset), "rows": rows}
+    payload = {"start": args.start, "meshes": len(dataset), "rows": rows, "by_kind": result.get("by_kind", {})}
     Path(args.json).write_text(json.dumps(payload, indent=1))
     print(json.dumps(payload))
 
@@ -68,6 +69,21 @@ def merge(paths: list[str]) -> None:
             if known and len(known) == len(parts) else "-"
         print(f"| {name} | {count} | {mean('detected'):.2f} | {mean('exact'):.2f} | {mean('named'):.2f} | "
               f"{mean('bit_acc'):.3f} | {known_text} | {mean('seconds'):.1f} |")
+    kinds = list(dict.fromkeys(kind for part in slices for kind in part.get("by_kind", {})))
+    if not kinds:
+        return
+    print("\nDetected by kind of picture (`meshseal eval`'s kinds: a picture can be of several):\n")
+    print("| kind | pictures | " + " | ".join(names) + " |")
+    print("|---|---|" + "---|" * len(names))
+    for kind in kinds:
+        parts = [part["by_kind"][kind] for part in slices if kind in part.get("by_kind", {})]
+        count = sum(part["pictures"] for part in parts)
+        cells = []
+        for name in names:
+            key = "detected" if name == "none" else name
+            have = [part for part in parts if part.get(key) is not None]
+            cells.append(f"{sum(p[key] * p['pictures'] for p in have) / sum(p['pictures'] for p in have):.2f}" if have else "-")
+        print(f"| {kind} | {count} | " + " | ".join(cells) + " |")
 
 
 def main() -> None:
