@@ -56,11 +56,51 @@ def uptime() -> str:
 
 # ---------------------------------------------------------------- pictures
 
-def prepare(work: Path, data: Path, meshes: int, fixture_views: int) -> list[dict]:
+def test_mesh(dataset, index: int, subdivide: int = 0, roughen: float = 0.0) -> dict:
+    """Test mesh `index` as `collate` gives it, or, with `subdivide`, its faces each cut into four
+    (edge midpoints; normals, UVs interpolated) that many times, a high-poly asset of the same look;
+    `roughen` then moves every vertex out from the centre by up to that share of the mesh's size, a
+    function of its position alone (seam copies stay together): detail finer than a pixel of the
+    search's silhouettes, as a scan has, which a decimated outline cannot keep exactly."""
+    import torch
+
+    from meshseal.data.dataset import collate
+
+    batch = collate([dataset[index]], "cpu")
+    if not subdivide and not roughen:
+        return batch
+    n_verts, n_faces = int(batch["n_verts"][0]), int(batch["n_faces"][0])
+    positions, normals = batch["positions"][0, :n_verts], batch["normals"][0, :n_verts]
+    uvs, faces = batch["uvs"][0, :n_verts], batch["faces"][0, :n_faces]
+    for _ in range(subdivide):
+        edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(1).values
+        unique, inverse = torch.unique(edges, dim=0, return_inverse=True)
+        middle = len(positions) + inverse.reshape(3, -1).T  # (F, 3): the new vertex of edges ab, bc, ca
+        positions = torch.cat([positions, positions[unique].mean(1)])
+        normals = torch.nn.functional.normalize(torch.cat([normals, normals[unique].mean(1)]), dim=1)
+        uvs = torch.cat([uvs, uvs[unique].mean(1)])
+        a, b, c = faces.unbind(1)
+        ab, bc, ca = middle.unbind(1)
+        faces = torch.cat([torch.stack(corners, 1) for corners in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    if roughen:
+        centre = positions.mean(0)
+        size = float((positions.amax(0) - positions.amin(0)).norm())
+        k = 2 * torch.pi * 40 / size  # forty waves across the mesh
+        bump = torch.sin(k * positions[:, 0]) * torch.sin(k * 1.3 * positions[:, 1]) * torch.sin(k * 0.7 * positions[:, 2])
+        positions = positions + roughen * size * bump[:, None] * torch.nn.functional.normalize(positions - centre, dim=1)
+    return batch | {"positions": positions[None], "normals": normals[None], "uvs": uvs[None], "faces": faces[None],
+                    "n_verts": torch.tensor([len(positions)]), "n_faces": torch.tensor([len(faces)])}
+
+
+def prepare(work: Path, data: Path, meshes: int, fixture_views: int, subdivide: int = 0, roughen: float = 0.0) -> list[dict]:
     """The pictures and what each carries (index.json in `work`), made once."""
     index_path = work / "index.json"
     if index_path.exists():
         items = json.loads(index_path.read_text())
+        made = {(item.get("subdivide", 0), item.get("roughen", 0.0)) for item in items if item["kind"] == "test"}
+        if made and made != {(subdivide, roughen)}:
+            sys.exit(f"registration.py: {work} holds pictures of other meshes (--subdivide, --roughen {sorted(made)[0]}): "
+                     "give another --work")
         have_test = sum(item["kind"] == "test" for item in items)
         have_fixture = sum(item["kind"] == "fixture" for item in items)
         if have_test >= meshes and have_fixture == len(TEXTURED) * fixture_views:
@@ -72,7 +112,7 @@ def prepare(work: Path, data: Path, meshes: int, fixture_views: int) -> list[dic
 
     import meshseal
     from meshseal import payload
-    from meshseal.data.dataset import MeshDataset, collate
+    from meshseal.data.dataset import MeshDataset
     from meshseal.mesh import load, normalize, to_z_up
     from meshseal.methods.batches import batch_mark_grid, batch_texels_used
     from meshseal.render import MeshBatch, MeshRenderer, lights_at, sample_seed_cameras
@@ -96,7 +136,7 @@ def prepare(work: Path, data: Path, meshes: int, fixture_views: int) -> list[dic
 
     dataset = MeshDataset(data, "test")
     for index in range(min(meshes, len(dataset))):
-        batch = collate([dataset[index]], "cpu")
+        batch = test_mesh(dataset, index, subdivide, roughen)
         positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
         generator = torch.Generator().manual_seed(index)
         identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
@@ -109,7 +149,8 @@ def prepare(work: Path, data: Path, meshes: int, fixture_views: int) -> list[dic
             out = renderer(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights, SIZE, SIZE,
                            background)
         items.append({"kind": "test", "mesh": index, "picture": save(out.image[0], f"test_{index:03d}.png"),
-                      "bits": [int(b) for b in message[0]], "message": identity, "camera": camera_of(cameras)})
+                      "bits": [int(b) for b in message[0]], "message": identity, "camera": camera_of(cameras),
+                      "subdivide": subdivide, "roughen": roughen, "faces": int(batch["n_faces"][0])})
     for k, name in enumerate(TEXTURED):
         mesh = load(FIXTURES / name)
         picture = normalize(to_z_up(watermarker.embed(mesh, message=MESSAGE)))
@@ -141,7 +182,7 @@ def child(data: Path, settings: list[str]) -> None:
     import torch
 
     import meshseal
-    from meshseal.data.dataset import MeshDataset, collate
+    from meshseal.data.dataset import MeshDataset
     from meshseal.reading.registration import pose_error
     from meshseal.render import Cameras, MeshBatch
 
@@ -175,7 +216,7 @@ def child(data: Path, settings: list[str]) -> None:
         key = (item["kind"], item["mesh"])
         if key not in originals:
             if item["kind"] == "test":
-                batch = collate([dataset[item["mesh"]]], "cpu")
+                batch = test_mesh(dataset, item["mesh"], item.get("subdivide", 0), item.get("roughen", 0.0))
                 originals[key] = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces",
                                                                                "texture")))
             else:
@@ -260,6 +301,10 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=ROOT / "data")
     parser.add_argument("--meshes", type=int, default=100)
     parser.add_argument("--fixture-views", type=int, default=2)
+    parser.add_argument("--subdivide", type=int, default=0,
+                        help="each test mesh's faces cut in four this many times (5,000 faces -> 80,000 at 2)")
+    parser.add_argument("--roughen", type=float, default=0.0,
+                        help="then its vertices moved by up to this share of its size (detail finer than the search's pixels)")
     parser.add_argument("--ref", default="/tmp/regref", help="a source tree (with src/), a commit, or none")
     parser.add_argument("--tree-src", type=Path, default=ROOT / "src",
                         help="this tree's code (a snapshot of src/ to go on editing while it runs)")
@@ -277,7 +322,7 @@ def main() -> None:
     print(f"start: {uptime()}", flush=True)
     work = args.work or Path(tempfile.mkdtemp(prefix="regbench_"))
     sys.path.insert(0, str(ROOT / "src"))
-    items = prepare(work, args.data, args.meshes, args.fixture_views)
+    items = prepare(work, args.data, args.meshes, args.fixture_views, args.subdivide, args.roughen)
     print(f"{len(items)} pictures in {work}", flush=True)
     codes = [("tree", args.tree_src)]
     if args.ref != "none":

@@ -133,13 +133,13 @@ def test_a_first_candidate_that_fits_the_texture_is_taken_without_refining_the_o
         eye = torch.tensor([[m, 0.0, 3.0] for m in misfits])
         return replace(base, eye=eye, at=torch.zeros_like(eye), up=base.up.expand(len(misfits), 3))
 
-    refined, misfits, chosen = registration._refine_candidates(None, candidates(0.05, 0.01, 2.0), levels, accept=0.2)
+    refined, misfits, chosen = registration._refine_candidates(None, None, candidates(0.05, 0.01, 2.0), levels, accept=0.2)
     assert refined_batches == [1] and chosen == 0 and misfits[1:] == [None, None] and len(refined) == 1
     refined_batches.clear()
-    refined, misfits, chosen = registration._refine_candidates(None, candidates(0.5, 0.1, 2.0), levels, accept=0.2)
+    refined, misfits, chosen = registration._refine_candidates(None, None, candidates(0.5, 0.1, 2.0), levels, accept=0.2)
     assert refined_batches == [1, 3] and chosen == 1 and torch.allclose(torch.tensor(misfits), torch.tensor([0.5, 0.1, 2.0]))
     refined_batches.clear()
-    registration._refine_candidates(None, candidates(0.05, 0.01, 2.0), levels)  # no `accept`: all at once
+    registration._refine_candidates(None, None, candidates(0.05, 0.01, 2.0), levels)  # no `accept`: all at once
     assert refined_batches == [3]
 
 
@@ -206,3 +206,82 @@ def test_the_zoomed_run_is_made_only_where_the_probe_asks_for_it(monkeypatch):
         found = registration.refine_on_texture_twice(None, camera, picture, mask)
         assert len(zoomed_runs) == runs, (misfit, turn, zoomed_runs)
         assert found.fov_y == (45.0 if runs else 50.0)
+
+
+def _cards(count: int = 24) -> "registration.MeshBatch":
+    """`count` separate square cards (two faces each, four vertices of their own) at seeded places and
+    angles: foliage as game assets draw it, open sheets that quadric decimation shrinks."""
+    generator = torch.Generator().manual_seed(0)
+    corners = torch.tensor([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]]) * 0.25
+    positions, faces = [], []
+    for k in range(count):
+        turn = torch.linalg.matrix_exp(torch.tensor([[0.0, -1.0, 0.5], [1.0, 0.0, -0.7], [-0.5, 0.7, 0.0]])
+                                       * torch.rand(1, generator=generator) * 3)
+        positions.append(corners @ turn.T + (torch.rand(3, generator=generator) - 0.5))
+        faces += [[4 * k, 4 * k + 1, 4 * k + 2], [4 * k, 4 * k + 2, 4 * k + 3]]
+    positions = torch.cat(positions)[None]
+    texture = torch.full((1, 3, 8, 8), 0.5)
+    return registration.MeshBatch.from_tensors(positions, torch.zeros_like(positions), torch.zeros(1, len(positions[0]), 2),
+                                               torch.tensor(faces)[None], texture)
+
+
+def _subdivided(mesh, times: int):
+    """`mesh` (one, shared faces (F, 3) or (1, F, 3)) with each face cut into four `times` times."""
+    positions, normals, faces = mesh.positions[0], mesh.normals[0], mesh.faces.reshape(-1, 3)
+    uvs = mesh.uvs[0] if mesh.uvs is not None else torch.zeros(len(positions), 2)
+    for _ in range(times):
+        edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(1).values
+        unique, inverse = torch.unique(edges, dim=0, return_inverse=True)
+        middle = len(positions) + inverse.reshape(3, -1).T
+        positions = torch.cat([positions, positions[unique].mean(1)])
+        normals = torch.nn.functional.normalize(torch.cat([normals, normals[unique].mean(1)]), dim=1)
+        uvs = torch.cat([uvs, uvs[unique].mean(1)])
+        a, b, c = faces.unbind(1)
+        ab, bc, ca = middle.unbind(1)
+        faces = torch.cat([torch.stack(corners, 1) for corners in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    texture = mesh.textures[0][None] if isinstance(mesh.textures, list) else mesh.textures
+    return registration.MeshBatch.from_tensors(positions[None], normals[None], uvs[None], faces[None], texture)
+
+
+def test_a_high_poly_mesh_searches_its_silhouettes_on_a_decimated_outline(monkeypatch):
+    """Above OUTLINE_ABOVE faces the search renders silhouettes from a copy of at most OUTLINE_FACES
+    faces whose outline matches the whole mesh's from every side, kept for the next picture; separate
+    open cards (foliage) keep their borders and so their outline; a mesh under the bar, one whose
+    decimated outline would differ (OUTLINE_IOU) and one the decimation hardly reduces (OUTLINE_SHARE)
+    keep their own faces."""
+    registration._OUTLINE.clear()
+    bunny = _bunny()
+    assert registration.outline_mesh(bunny) is bunny  # 4,000 faces: under the bar
+    dense = _subdivided(bunny, 1)  # 16,000 faces
+    monkeypatch.setattr(registration, "OUTLINE_ABOVE", 10000)
+    monkeypatch.setattr(registration, "OUTLINE_FACES", 3000)
+    outline = registration.outline_mesh(dense)
+    assert outline is not dense and len(outline.faces) <= 3000 and outline.uvs is None
+    assert registration.outline_mesh(dense) is outline  # decimated once for a folder of pictures
+    assert float(registration._outline_overlaps(dense, outline).min()) >= registration.OUTLINE_IOU
+    cards = _subdivided(_cards(), 4)  # 12,288 faces
+    kept = registration.outline_mesh(cards)
+    assert kept is not cards and len(kept.faces) <= registration.OUTLINE_SHARE * len(cards.faces[0])
+    assert float(registration._outline_overlaps(cards, kept).min()) >= registration.OUTLINE_IOU
+    for name, value in (("OUTLINE_IOU", 1.01), ("OUTLINE_SHARE", 0.1)):
+        monkeypatch.setattr(registration, name, value)
+        registration._OUTLINE.clear()
+        assert registration.outline_mesh(dense) is dense, name
+        monkeypatch.undo()
+        monkeypatch.setattr(registration, "OUTLINE_ABOVE", 10000)
+        monkeypatch.setattr(registration, "OUTLINE_FACES", 3000)
+
+
+def test_registration_on_the_outline_finds_the_view(monkeypatch):
+    """A picture of a 16,000-face bunny registered with its silhouettes searched on a 3,000-face
+    outline: the camera is the picture's, within half a pixel."""
+    from meshseal.reading.registration import pose_error, register
+
+    monkeypatch.setattr(registration, "OUTLINE_ABOVE", 10000)
+    monkeypatch.setattr(registration, "OUTLINE_FACES", 3000)
+    registration._OUTLINE.clear()
+    mesh, (camera, lights) = _subdivided(_bunny(), 1), _view(index=0)
+    assert registration.outline_mesh(mesh) is not mesh
+    out = MeshRenderer()(mesh, camera, lights, 128, 128, (0.5, 0.5, 0.5))
+    found = register(mesh, out.image[0], out.rgba[0, ..., 3] > 0.5, torch.tensor([0.5, 0.5, 0.5]))
+    assert pose_error(mesh, camera, found.camera, 128, 128) < 0.5

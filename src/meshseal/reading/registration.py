@@ -82,6 +82,11 @@ POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels 
 POLISH_MAX = 0.5  # ... and a move of more than this many pixels (mean screen distance) not taken
 POLISH_FOOTPRINTS = (1.0, 0.5, 0.75, 1.5)  # how the picture may have sampled the object: a render at 1 / f its size resized to it ...
 POLISH_FOOTPRINT_GAIN = 0.9  # ... a resized one used only where it fits under this share of the point samples' misfit (1.5: never)
+OUTLINE_ABOVE = 20000  # a mesh of more faces than this searches its silhouettes on a decimated copy ...
+OUTLINE_FACES = 8000  # ... of at most this many faces (`outline_mesh`) ...
+OUTLINE_SHARE = 0.6  # ... where the decimation gets it to this share of the faces or fewer (open sheets' borders stay) ...
+OUTLINE_IOU = 0.97  # ... where its silhouette overlaps the whole mesh's by at least this in each of OUTLINE_VIEWS views
+OUTLINE_VIEWS = 12
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -203,6 +208,71 @@ def _hull_points(mesh: MeshBatch) -> torch.Tensor:
         hull = used
     _HULL[:] = [(positions, faces, hull)]
     return hull
+
+
+_OUTLINE: list = []  # (positions, faces, outline) of the last mesh `outline_mesh` saw
+
+
+def outline_mesh(mesh: MeshBatch) -> MeshBatch:
+    """The mesh whose silhouettes the search and the silhouette stages render: `mesh` itself, or where it
+    has more than OUTLINE_ABOVE faces a copy decimated toward OUTLINE_FACES (quadric error, one pass,
+    its vertices first welded where the file split them at UV or normal seams, so that no seam opens,
+    and the open borders kept: a card of foliage keeps its shape). The
+    candidate views' silhouettes are 64 px and the silhouette stages' 128 px wide, where a few
+    thousand faces draw the same outline as a scan's hundreds of thousands; the cost of each render
+    grows with the faces (clipping, the z-buffer), so a high-poly asset would otherwise pay it
+    hundreds of times. The decimated copy is used only where its silhouette overlaps the whole mesh's
+    by OUTLINE_IOU or more in each of OUTLINE_VIEWS views all around (at the silhouette stages' size)
+    and has at most OUTLINE_SHARE of its faces: decimation can eat thin parts, and a search on a wrong
+    outline finds a wrong view. Positions and faces only: the shading score and the texture stage keep the
+    whole mesh. Kept for the last mesh: a folder of pictures of one mesh decimates it once."""
+    import fast_simplification
+    import numpy as np
+
+    positions, faces = mesh.positions, mesh.faces
+    shared = faces if faces.dim() == 2 else faces[0] if faces.shape[0] == 1 else None
+    if shared is None or positions.shape[0] != 1 or len(shared) <= OUTLINE_ABOVE:
+        return mesh
+    if _OUTLINE and _OUTLINE[0][0] is positions and _OUTLINE[0][1] is faces:
+        return _OUTLINE[0][2]
+    points = positions[0].detach().cpu().double().numpy()
+    welded, inverse = np.unique(points, axis=0, return_inverse=True)
+    triangles = inverse.reshape(-1)[shared.cpu().numpy()]
+    triangles = triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                          & (triangles[:, 0] != triangles[:, 2])]
+    try:
+        if len(triangles) <= OUTLINE_FACES:
+            raise ValueError
+        new_points, new_faces = fast_simplification.simplify(welded, triangles.astype(np.int32),
+                                                             target_count=OUTLINE_FACES, preserve_border=True)
+        if not 0 < len(new_faces) <= OUTLINE_SHARE * len(triangles):
+            raise ValueError
+    except (ValueError, RuntimeError):  # nothing to decimate, too little, or the simplifier refused: the whole mesh
+        outline = mesh
+    else:
+        vertices = torch.from_numpy(np.asarray(new_points)).to(positions)[None]
+        new_faces = np.asarray(new_faces, dtype=np.int64)
+        outline = replace(mesh, positions=vertices, normals=torch.zeros_like(vertices), uvs=None,
+                          faces=torch.from_numpy(new_faces).to(faces),
+                          face_material=torch.zeros(len(new_faces), dtype=torch.long, device=faces.device))
+        if float(_outline_overlaps(mesh, outline).min()) < OUTLINE_IOU:
+            outline = mesh
+    _OUTLINE[:] = [(positions, faces, outline)]
+    return outline
+
+
+def _outline_overlaps(mesh: MeshBatch, outline: MeshBatch) -> torch.Tensor:
+    """Silhouette IoU (OUTLINE_VIEWS,) of `outline` against `mesh` from views all around, each framing
+    the object at SEARCH_SIZE."""
+    from ..render.rasterizer import visible_faces
+
+    directions = fibonacci_directions(OUTLINE_VIEWS).to(mesh.positions)
+    cameras = Cameras(DISTANCE * directions, torch.zeros_like(directions), _up_for(directions), FOV)
+    cameras = _center_objects(mesh, cameras, SEARCH_SIZE)
+    with torch.no_grad():
+        whole, simple = (visible_faces(_clip(m, cameras, SEARCH_SIZE, SEARCH_SIZE), m.faces, SEARCH_SIZE,
+                                       SEARCH_SIZE) >= 0 for m in (mesh, outline))
+    return (whole & simple).sum((1, 2)) / (whole | simple).sum((1, 2)).clamp_min(1)
 
 
 def _seen_target(low: torch.Tensor, high: torch.Tensor, seen_low: torch.Tensor, seen_high: torch.Tensor,
@@ -1047,7 +1117,7 @@ def _coarse_silhouettes(mesh: MeshBatch, cameras: Cameras, levels) -> Cameras:
     return cameras
 
 
-def _refine_candidates(mesh: MeshBatch, cameras: Cameras, levels, margin: float = PICK_MARGIN,
+def _refine_candidates(mesh: MeshBatch, outline: MeshBatch, cameras: Cameras, levels, margin: float = PICK_MARGIN,
                        accept: float | None = None):
     """Candidate `cameras` (best-scored first) refined coarsely on their silhouettes, their texture
     misfits (PICK_SIGMAS; inf for a candidate whose refined silhouette overlaps clearly worse than the
@@ -1055,20 +1125,21 @@ def _refine_candidates(mesh: MeshBatch, cameras: Cameras, levels, margin: float 
     times its misfit. With `accept`, the first is refined alone first and picked at once where its
     misfit is under `accept` (a registered view's): no other could then be much nearer the picture's
     view than it, and the finer stages take it to the same pose. The others are then left as they
-    were, their misfits None (`register` offers them for a second look, refined only if asked)."""
+    were, their misfits None (`register` offers them for a second look, refined only if asked).
+    `outline`: the mesh the silhouettes are rendered from (`outline_mesh`)."""
     target, target_mask, _ = levels[SEARCH_SIZE]
     if accept is not None and len(cameras) > 1:
-        first = _coarse_silhouettes(mesh, cameras[[0]], levels)
+        first = _coarse_silhouettes(outline, cameras[[0]], levels)
         misfit = texture_misfits(mesh, first, target, target_mask[:, 0], PICK_SIGMAS)[0]
         if misfit < accept:
             return first, [misfit] + [None] * (len(cameras) - 1), 0
-    refined = _coarse_silhouettes(mesh, cameras, levels)
+    refined = _coarse_silhouettes(outline, cameras, levels)
     # Symmetric shapes leave several views with the same silhouette: the texture tells them apart. The
     # best-scored candidate stays unless another fits the texture clearly better: a candidate a few
     # degrees off fits the fine bands as badly as a wrong view, so a plain minimum of the misfit would
     # often throw the right one away.
     # Candidates whose refined silhouette overlaps clearly worse than the best one's are not scored.
-    overlap = _overlaps(mesh, refined, levels[SEARCH_SIZE])
+    overlap = _overlaps(outline, refined, levels[SEARCH_SIZE])
     scored = [i for i in range(len(refined)) if i == 0 or overlap[i] >= overlap.max() - PICK_IOU_SLACK]
     misfits = [math.inf] * len(refined)
     for i, misfit in zip(scored, texture_misfits(mesh, refined[scored], target, target_mask[:, 0], PICK_SIGMAS)):
@@ -1088,6 +1159,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     levels = _targets(target, target_mask, inside)
     fov, principal = crop_intrinsics(picture.shape[-2], picture.shape[-1], box[0], fov_y)
     seen = _seen_part(mask, box[0], COMPARE_SIZE)
+    outline = outline_mesh(mesh)
 
     # 1. Candidate views all around, moved so the object fills the crop as in the picture, and scored.
     directions = fibonacci_directions(candidates)
@@ -1097,19 +1169,20 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     # Silhouette overlap first (a render each); the light fits of the shading term only for the views
     # that overlap best.
     chunks = [list(range(first, min(candidates, first + 32))) for first in range(0, candidates, 32)]
-    visible = []  # each candidate's visible faces, rasterized once for both scores
-    overlap = torch.cat([_overlaps(mesh, search[chunk], levels[COMPARE_SIZE], visible) for chunk in chunks])
-    visible = torch.cat(visible)
+    visible = []  # each candidate's visible faces, rasterized once for both scores (the outline's: its own)
+    overlap = torch.cat([_overlaps(outline, search[chunk], levels[COMPARE_SIZE], visible) for chunk in chunks])
+    visible = torch.cat(visible) if outline is mesh else None
     shortlist = overlap.topk(min(candidates, SHADED_CANDIDATES)).indices.tolist()
     scores = torch.full((candidates,), -math.inf)
     for first in range(0, len(shortlist), 32):
         chunk = shortlist[first:first + 32]
-        scores[chunk] = _scores(mesh, search[chunk], levels[COMPARE_SIZE], shading_weight, visible[chunk])
+        scores[chunk] = _scores(mesh, search[chunk], levels[COMPARE_SIZE], shading_weight,
+                                None if visible is None else visible[chunk])
     best = _distinct(scores, directions, keep)
 
     # 2. Refine the best few coarsely, then the best of them finely, on blurred silhouettes (a wider
     # blur first: its basin is wider).
-    refined, misfits, chosen = _refine_candidates(mesh, search[best], levels, accept=ACCEPT_MISFIT)
+    refined, misfits, chosen = _refine_candidates(mesh, outline, search[best], levels, accept=ACCEPT_MISFIT)
     taken_at_once = len(misfits) > 1 and misfits[1] is None  # the others left unrefined
     if taken_at_once:  # the others, best-scored first, as they are
         others = list(range(1, len(best)))
@@ -1120,7 +1193,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     def on_silhouettes(camera: Cameras) -> Cameras:
         """The picked candidate refined finely on silhouettes: the camera of the whole picture."""
         for sigma in FINE_SILHOUETTE_SIGMAS:
-            camera = _refine_silhouettes(mesh, camera, levels[SEARCH_SIZE], sigma)
+            camera = _refine_silhouettes(outline, camera, levels[SEARCH_SIZE], sigma)
         return replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
 
     def on_texture(camera: Cameras) -> Cameras:
@@ -1139,7 +1212,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
     camera = finish(refined[[chosen]])
     if taken_at_once:
-        alternatives = tuple(Alternative(search[[best[i]]], lambda c: on_silhouettes(_coarse_silhouettes(mesh, c, levels)),
+        alternatives = tuple(Alternative(search[[best[i]]], lambda c: on_silhouettes(_coarse_silhouettes(outline, c, levels)),
                                          on_texture) for i in others[:ALTERNATIVES])
     else:
         alternatives = tuple(Alternative(refined[[i]], on_silhouettes, on_texture) for i in others[:ALTERNATIVES])
@@ -1151,7 +1224,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
         misfit = texture_misfit(mesh, camera, full, full_mask, PICK_SIGMAS)
         more = _distinct(scores, directions, RETRY_KEEP, RETRY_ANGLE, away_from=best) if misfit > RETRY_ABOVE else []
         if more:
-            extra, extra_misfits, extra_chosen = _refine_candidates(mesh, search[more], levels, margin=1.0)
+            extra, extra_misfits, extra_chosen = _refine_candidates(mesh, outline, search[more], levels, margin=1.0)
             if math.isfinite(extra_misfits[extra_chosen]):
                 other = finish(extra[[extra_chosen]])
                 if texture_misfit(mesh, other, full, full_mask, PICK_SIGMAS) < misfit:
