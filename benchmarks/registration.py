@@ -29,6 +29,11 @@ pose error; then the pictures whose bits differ between the codes. `uptime` at s
 
     python benchmarks/registration.py --data data --meshes 100 [--ref /tmp/regref|COMMIT|none]
                                       [--work /tmp/regbench] [--fixture-views 2] [--jsonl rows.jsonl]
+                                      [--subdivide K --roughen A] [--unrelated K]
+
+`--subdivide` and `--roughen` make the test meshes high-poly (`test_mesh`; pictures in their own
+`--work`); `--unrelated K` reads each test picture against test mesh (its own + K) instead, as a scan of
+many pictures for one asset mostly meets them (its "detected" column is then the false-positive rate).
 """
 
 from __future__ import annotations
@@ -213,10 +218,11 @@ def child(data: Path, settings: list[str]) -> None:
     originals = {}
 
     def original_of(item):
-        key = (item["kind"], item["mesh"])
+        mesh = item.get("original", item["mesh"])  # `--unrelated`: another mesh's original
+        key = (item["kind"], mesh)
         if key not in originals:
             if item["kind"] == "test":
-                batch = test_mesh(dataset, item["mesh"], item.get("subdivide", 0), item.get("roughen", 0.0))
+                batch = test_mesh(dataset, mesh, item.get("subdivide", 0), item.get("roughen", 0.0))
                 originals[key] = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces",
                                                                                "texture")))
             else:
@@ -243,7 +249,7 @@ def child(data: Path, settings: list[str]) -> None:
             c = item["camera"]
             truth = Cameras(torch.tensor([c["eye"]]), torch.tensor([c["at"]]), torch.tensor([c["up"]]), c["fov_y"],
                             principal=tuple(c["principal"]))
-            pose = pose_error(original if item["kind"] == "test" else original, truth, reading.found, SIZE, SIZE)
+            pose = pose_error(original, truth, reading.found, SIZE, SIZE) if "original" not in item else float("nan")
             row = {"seconds": seconds, "cpu": cpu, "registration": spent[0], "bit_acc": float(np.mean(np.array(got) == np.array(item["bits"]))),
                    "detected": bool(found.detected), "exact": found.message == item["message"], "pose": pose,
                    "iou": float(reading.registration_iou or 0.0), "bits": "".join(map(str, got))}
@@ -303,6 +309,9 @@ def main() -> None:
     parser.add_argument("--fixture-views", type=int, default=2)
     parser.add_argument("--subdivide", type=int, default=0,
                         help="each test mesh's faces cut in four this many times (5,000 faces -> 80,000 at 2)")
+    parser.add_argument("--unrelated", type=int, default=0, metavar="K",
+                        help="read each test picture against test mesh (its own + K) instead, no fixtures: a scan of "
+                             "pictures that do not show the mesh (its detected column is the false-positive rate)")
     parser.add_argument("--roughen", type=float, default=0.0,
                         help="then its vertices moved by up to this share of its size (detail finer than the search's pixels)")
     parser.add_argument("--ref", default="/tmp/regref", help="a source tree (with src/), a commit, or none")
@@ -323,6 +332,9 @@ def main() -> None:
     work = args.work or Path(tempfile.mkdtemp(prefix="regbench_"))
     sys.path.insert(0, str(ROOT / "src"))
     items = prepare(work, args.data, args.meshes, args.fixture_views, args.subdivide, args.roughen)
+    if args.unrelated:
+        tests = [item for item in items if item["kind"] == "test"]
+        items = [item | {"original": tests[(k + args.unrelated) % len(tests)]["mesh"]} for k, item in enumerate(tests)]
     print(f"{len(items)} pictures in {work}", flush=True)
     codes = [("tree", args.tree_src)]
     if args.ref != "none":
