@@ -6,7 +6,7 @@ default marks the texture with an error-corrected ID; the picture is rendered by
 as `meshseal detect --mesh` reads it (object found from the background, camera registered), under:
 plain (a plain random background, 256^2: the reference), gradient (a linear ramp between two random
 colours), busy (a real texture image from the dataset as the background), cut (the camera aimed off
-the object so that the frame edge cuts part of it off), 512 and 1024 (larger pictures), jpeg75 (JPEG
+the object so that the frame edge cuts part of it off), 512, 1024 and 2048 (larger pictures), jpeg75 (JPEG
 quality 75). Per condition: pictures `meshseal detect` refuses (no object found), registration
 success (pose error < 0.5 px at the picture's size scaled to 256^2, or IoU >= 0.95), median pose
 error, bit accuracy with the registered and with the true camera, detection rate at FPR 1e-6, and
@@ -38,7 +38,7 @@ from meshseal.render.views import sample_views
 from meshseal.reading.registration import pose_error
 from meshseal.render import MeshBatch, MeshRenderer
 
-CONDITIONS = ("plain", "gradient", "busy", "cut", "512", "1024", "jpeg75")
+CONDITIONS = ("plain", "gradient", "busy", "cut", "512", "1024", "2048", "jpeg75")
 
 
 def background_for(condition: str, size: int, generator: torch.Generator, textures: list[Path]) -> torch.Tensor:
