@@ -70,6 +70,7 @@ def test_mesh(dataset, index: int, subdivide: int = 0, roughen: float = 0.0) -> 
     import torch
 
     from meshseal.data.dataset import collate
+    from meshseal.mesh.preprocess import subdivide as subdivide_mesh
 
     batch = collate([dataset[index]], "cpu")
     if not subdivide and not roughen:
@@ -77,16 +78,7 @@ def test_mesh(dataset, index: int, subdivide: int = 0, roughen: float = 0.0) -> 
     n_verts, n_faces = int(batch["n_verts"][0]), int(batch["n_faces"][0])
     positions, normals = batch["positions"][0, :n_verts], batch["normals"][0, :n_verts]
     uvs, faces = batch["uvs"][0, :n_verts], batch["faces"][0, :n_faces]
-    for _ in range(subdivide):
-        edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(1).values
-        unique, inverse = torch.unique(edges, dim=0, return_inverse=True)
-        middle = len(positions) + inverse.reshape(3, -1).T  # (F, 3): the new vertex of edges ab, bc, ca
-        positions = torch.cat([positions, positions[unique].mean(1)])
-        normals = torch.nn.functional.normalize(torch.cat([normals, normals[unique].mean(1)]), dim=1)
-        uvs = torch.cat([uvs, uvs[unique].mean(1)])
-        a, b, c = faces.unbind(1)
-        ab, bc, ca = middle.unbind(1)
-        faces = torch.cat([torch.stack(corners, 1) for corners in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    positions, normals, uvs, faces = subdivide_mesh(positions, normals, uvs, faces, subdivide)
     if roughen:
         centre = positions.mean(0)
         size = float((positions.amax(0) - positions.amin(0)).norm())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -556,3 +557,26 @@ def test_a_mesh_made_in_memory_keeps_its_material_colours(tmp_path, suffix):
         assert torch.allclose(back.ambient, material.ambient, atol=1 / 255)
         assert torch.allclose(back.specular, material.specular, atol=1 / 255)
         assert back.shininess == pytest.approx(20.0)
+
+
+def test_subdivision_keeps_the_surface_and_its_texture_mapping():
+    """`preprocess.subdivide` cuts every face into four (an edge shared by two faces gets one midpoint)
+    and the subdivided bunny renders as the bunny does: the same coverage, the same colours but for
+    the normals' interpolation."""
+    from meshseal.mesh.preprocess import subdivide
+    from meshseal.render import MeshBatch, MeshRenderer, sample_any_lights, sample_any_view_cameras
+
+    mesh = MeshBatch.from_mesh(normalize(to_z_up(load(FIXTURES / "bunny.glb"))))
+    positions, normals, uvs, faces = mesh.positions[0], mesh.normals[0], mesh.uvs[0], mesh.faces
+    edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(1).values.unique(dim=0)
+    new_positions, new_normals, new_uvs, new_faces = subdivide(positions, normals, uvs, faces, 1)
+    assert len(new_faces) == 4 * len(faces) and len(new_positions) == len(positions) + len(edges)
+    assert torch.allclose(new_normals.norm(dim=1), torch.ones(len(new_normals)), atol=1e-5)
+    dense = replace(mesh, positions=new_positions[None], normals=new_normals[None], uvs=new_uvs[None], faces=new_faces,
+                    face_material=torch.zeros(len(new_faces), dtype=torch.long))
+    generator = torch.Generator().manual_seed(0)
+    cameras, lights = sample_any_view_cameras(2, generator), sample_any_lights(2, generator)
+    before, after = (MeshRenderer()(m, cameras, lights, 96, 96).rgba for m in (mesh, dense))
+    assert torch.equal(before[..., 3] > 0.5, after[..., 3] > 0.5)
+    assert float((before[..., :3] - after[..., :3]).abs().mean()) < 1e-4  # a UV map shifted by 0.01: 3e-3
+    assert subdivide(positions, normals, None, faces, 2)[2] is None and len(subdivide(positions, normals, None, faces, 2)[3]) == 16 * len(faces)

@@ -227,18 +227,10 @@ def _cards(count: int = 24) -> "registration.MeshBatch":
 
 def _subdivided(mesh, times: int):
     """`mesh` (one, shared faces (F, 3) or (1, F, 3)) with each face cut into four `times` times."""
-    positions, normals, faces = mesh.positions[0], mesh.normals[0], mesh.faces.reshape(-1, 3)
-    uvs = mesh.uvs[0] if mesh.uvs is not None else torch.zeros(len(positions), 2)
-    for _ in range(times):
-        edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(1).values
-        unique, inverse = torch.unique(edges, dim=0, return_inverse=True)
-        middle = len(positions) + inverse.reshape(3, -1).T
-        positions = torch.cat([positions, positions[unique].mean(1)])
-        normals = torch.nn.functional.normalize(torch.cat([normals, normals[unique].mean(1)]), dim=1)
-        uvs = torch.cat([uvs, uvs[unique].mean(1)])
-        a, b, c = faces.unbind(1)
-        ab, bc, ca = middle.unbind(1)
-        faces = torch.cat([torch.stack(corners, 1) for corners in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    from meshseal.mesh.preprocess import subdivide
+
+    uvs = mesh.uvs[0] if mesh.uvs is not None else torch.zeros(len(mesh.positions[0]), 2)
+    positions, normals, uvs, faces = subdivide(mesh.positions[0], mesh.normals[0], uvs, mesh.faces.reshape(-1, 3), times)
     texture = mesh.textures[0][None] if isinstance(mesh.textures, list) else mesh.textures
     return registration.MeshBatch.from_tensors(positions[None], normals[None], uvs[None], faces[None], texture)
 
