@@ -240,23 +240,21 @@ def outline_mesh(mesh: MeshBatch) -> MeshBatch:
     triangles = inverse.reshape(-1)[shared.cpu().numpy()]
     triangles = triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
                           & (triangles[:, 0] != triangles[:, 2])]
-    try:
-        if len(triangles) <= OUTLINE_FACES:
-            raise ValueError
-        new_points, new_faces = fast_simplification.simplify(welded, triangles.astype(np.int32),
-                                                             target_count=OUTLINE_FACES, preserve_border=True)
-        if not 0 < len(new_faces) <= OUTLINE_SHARE * len(triangles):
-            raise ValueError
-    except (ValueError, RuntimeError):  # nothing to decimate, too little, or the simplifier refused: the whole mesh
-        outline = mesh
-    else:
+    new_points, new_faces = None, ()  # nothing to decimate, or the simplifier refused: the whole mesh
+    if len(triangles) > OUTLINE_FACES:
+        try:
+            new_points, new_faces = fast_simplification.simplify(welded, triangles.astype(np.int32),
+                                                                 target_count=OUTLINE_FACES, preserve_border=True)
+        except (ValueError, RuntimeError):
+            pass
+    outline = mesh
+    if 0 < len(new_faces) <= OUTLINE_SHARE * len(triangles):
         vertices = torch.from_numpy(np.asarray(new_points)).to(positions)[None]
-        new_faces = np.asarray(new_faces, dtype=np.int64)
-        outline = replace(mesh, positions=vertices, normals=torch.zeros_like(vertices), uvs=None,
-                          faces=torch.from_numpy(new_faces).to(faces),
-                          face_material=torch.zeros(len(new_faces), dtype=torch.long, device=faces.device))
-        if float(_outline_overlaps(mesh, outline).min()) < OUTLINE_IOU:
-            outline = mesh
+        new_faces = torch.from_numpy(np.asarray(new_faces, dtype=np.int64)).to(faces)
+        decimated = replace(mesh, positions=vertices, normals=torch.zeros_like(vertices), uvs=None, faces=new_faces,
+                            face_material=torch.zeros(len(new_faces), dtype=torch.long, device=faces.device))
+        if float(_outline_overlaps(mesh, decimated).min()) >= OUTLINE_IOU:
+            outline = decimated
     _OUTLINE[:] = [(positions, faces, outline)]
     return outline
 
@@ -272,7 +270,7 @@ def _outline_overlaps(mesh: MeshBatch, outline: MeshBatch) -> torch.Tensor:
     with torch.no_grad():
         whole, simple = (visible_faces(_clip(m, cameras, SEARCH_SIZE, SEARCH_SIZE), m.faces, SEARCH_SIZE,
                                        SEARCH_SIZE) >= 0 for m in (mesh, outline))
-    return (whole & simple).sum((1, 2)) / (whole | simple).sum((1, 2)).clamp_min(1)
+    return _iou(whole.float(), simple.float())
 
 
 def _seen_target(low: torch.Tensor, high: torch.Tensor, seen_low: torch.Tensor, seen_high: torch.Tensor,
