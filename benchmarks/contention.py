@@ -28,7 +28,12 @@ put first on PYTHONPATH; this tree's `src` is the other code. Each code is warme
 compiles its kernels into its own cache). Within a condition the two codes alternate figure by figure.
 
 Run: python benchmarks/contention.py [--ref COMMIT] [--conditions quiet,busy,batch,blender,load2x]
-                                     [--figures render,detect,registered,cli_help,cli_first]
+                                     [--figures render,detect,registered,cli_help,cli_first] [--idle-policy]
+
+The policy counts the cores other jobs leave free when a process starts, and the benchmark's own work
+keeps about one core busy, so its children mostly take one thread. `--idle-policy` gives each child the
+count the policy gives a process started on an idle machine (all the cores): its `quiet` figures are then
+a user's on an idle machine, and the other conditions show such a process when a competitor starts after it.
 The table gives each figure and its ratio to the same code's quiet value (x quiet), and the ratio of
 this tree's code to the reference (x ref). LAST line: `NAME_CONDITION=value` for this tree's code,
 `NAME_CONDITION_xquiet=ratio` and `NAME_CONDITION_xref=ratio`, and `load_CONDITION=` the one-minute load
@@ -55,16 +60,19 @@ TEXTURED = ("bunny.glb", "suzanne.glb", "teapot/teapot.obj", "sh3d_crate/crate.o
 FIGURES = ("render", "detect", "registered", "cli_help", "cli_first")
 CONDITIONS = ("quiet", "busy", "batch", "blender", "load2x")
 MESSAGE = "ab42"
+IDLE_POLICY = "CONTENTION_IDLE_POLICY"
 
 
 # ---------------------------------------------------------------- children: one figure each, one JSON line
 
 def _policy() -> str:
     try:
-        from meshseal.threads import configure
+        import meshseal.threads as threads
     except ImportError:
         return "library defaults"
-    return f"meshseal.threads: {configure()} thread(s)"
+    if os.environ.get(IDLE_POLICY):  # the count the policy takes on an idle machine (`--idle-policy`)
+        threads.busy_cores = lambda: 0.0
+    return f"meshseal.threads: {threads.configure()} thread(s)"
 
 
 def child_render(work: Path) -> dict:
@@ -218,8 +226,11 @@ def stop(processes: list[subprocess.Popen]) -> None:
         process.wait()
 
 
-def run_child(figure: str, source: Path, work: Path) -> dict:
+def run_child(figure: str, source: Path, work: Path, idle_policy: bool = False) -> dict:
     env = dict(os.environ, PYTHONPATH=str(source))
+    env.pop(IDLE_POLICY, None)
+    if idle_policy:
+        env[IDLE_POLICY] = "1"
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "MESHSEAL_THREADS", "OMP_WAIT_POLICY"):
         env.pop(name, None)  # each code chooses its own threads, as it would for a user
     out = subprocess.run([sys.executable, __file__, "--child", figure, "--work", str(work)], env=env,
@@ -234,6 +245,9 @@ def main() -> None:
     parser.add_argument("--ref", default="HEAD~1", help="reference commit (default HEAD~1; none: this tree only)")
     parser.add_argument("--conditions", default=",".join(CONDITIONS))
     parser.add_argument("--figures", default=",".join(FIGURES))
+    parser.add_argument("--idle-policy", action="store_true",
+                        help="children take the threads the policy gives a process started on an idle machine "
+                             "(all its cores) instead of reading the load, which this benchmark's own work raises")
     parser.add_argument("--child", choices=FIGURES, help=argparse.SUPPRESS)
     parser.add_argument("--work", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -275,7 +289,7 @@ def main() -> None:
                       flush=True)
                 for figure in figures:
                     for code, source in codes.items():
-                        result = run_child(figure, source, work)
+                        result = run_child(figure, source, work, args.idle_policy)
                         results[(figure, condition, code)] = result
                         extra = {k: v for k, v in result.items() if k != "value"}
                         print(f"  {figure:<10} {code:<12} {result['value']:10.3f}  {extra}  "

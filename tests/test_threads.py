@@ -130,3 +130,34 @@ def test_a_second_policy_in_one_process_leaves_numbas_running_pool_alone():
     out = subprocess.run([sys.executable, "-c", RECONFIGURE], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-1500:]
     assert out.stdout.split()[0] == "100.0"
+
+
+READING = """
+import json, os
+for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MESHSEAL_THREADS"):
+    os.environ.pop(name, None)
+os.environ.update(%r)
+from meshseal import threads
+threads.available_cores = lambda: 2
+threads.busy_cores = lambda: 0.0  # an idle two-core machine: the policy takes both cores
+threads.configure()
+import numba, torch
+seen = {"start": [torch.get_num_threads(), numba.get_num_threads()]}
+for pixels in (256 * 256, threads.READ_ONE_THREAD_BELOW):
+    with threads.reading_threads(pixels):
+        seen[str(pixels)] = [torch.get_num_threads(), numba.get_num_threads()]
+seen["after"] = [torch.get_num_threads(), numba.get_num_threads()]
+print(json.dumps(seen))
+"""
+
+
+@pytest.mark.parametrize("env, inside", [({}, 1), ({"MESHSEAL_THREADS": "2"}, 2)])
+def test_a_small_picture_is_read_on_one_thread_unless_the_user_says(env, inside):
+    """The policy's two threads on an idle machine; a picture under a million pixels is read on one
+    (torch's and numba's), a larger one on both, and the count comes back after; a count the user
+    gave stays throughout."""
+    out = subprocess.run([sys.executable, "-c", READING % (env,)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-1500:]
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    big = str(threads.READ_ONE_THREAD_BELOW)
+    assert seen == {"start": [2, 2], str(256 * 256): [inside, inside], big: [2, 2], "after": [2, 2]}

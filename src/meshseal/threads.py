@@ -11,6 +11,8 @@ many times the work. The policy:
   (`os.sched_getaffinity`) that other jobs are not already keeping busy (the load average and the
   number of runnable tasks now, whichever is higher), at least one;
 - each worker of a pool: one thread (the pool has one worker per core);
+- reading a picture of under a million pixels: one thread whatever the count (`reading_threads`): its
+  operations are too small to share between sleeping threads;
 - idle threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, `KMP_BLOCKTIME=0`);
 - a count the user gives wins: `MESHSEAL_THREADS`, else `OMP_NUM_THREADS`.
 
@@ -28,8 +30,12 @@ from __future__ import annotations
 
 import os
 import sys
+from contextlib import contextmanager
 
 ENV = "MESHSEAL_THREADS"
+_GIVEN: int | None = None  # the count `configure` was given or found set (its own count goes into the environment)
+_CONFIGURED = False
+READ_ONE_THREAD_BELOW = 1024 * 1024  # pixels: a picture smaller than this is read on one thread (`reading_threads`)
 _COUNTS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
 _PASSIVE = {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
 
@@ -83,6 +89,10 @@ def policy_threads(worker: bool = False) -> int:
 def configure(threads: int | None = None, worker: bool = False) -> int:
     """Apply the policy to this process (and the processes it starts, through the environment);
     returns the thread count. `threads` overrides the policy's count."""
+    global _GIVEN, _CONFIGURED
+    if threads is not None or not _CONFIGURED:  # read before the policy's own count is written out
+        _GIVEN = int(threads) if threads is not None else requested()
+    _CONFIGURED = True
     n = int(threads) if threads is not None else policy_threads(worker)
     for name, value in _PASSIVE.items():
         os.environ.setdefault(name, value)
@@ -107,3 +117,39 @@ def worker_environment() -> dict[str, str]:
     """The environment settings a spawned pool worker needs before it imports anything: one thread,
     idle threads asleep."""
     return {**{name: "1" for name in _COUNTS}, ENV: "1", **{k: os.environ.get(k, v) for k, v in _PASSIVE.items()}}
+
+
+@contextmanager
+def reading_threads(pixels: int):
+    """One thread (torch's and numba's) while a picture of `pixels` pixels is read, where it has fewer
+    than READ_ONE_THREAD_BELOW and the user gave no count; the count before it afterwards.
+
+    Reading and registering a picture of that size is thousands of small operations: with idle
+    threads asleep (the policy above) each parallel one wakes the others and waits for them, which
+    costs more than the second core gives, so one thread reads such a picture faster than two;
+    threads that spin instead are faster on a quiet machine but lose several times that beside another
+    job (`python benchmarks/contention.py --idle-policy`). A larger picture's operations are large
+    enough to share.
+    Several pictures are read in parallel by processes (`meshseal detect FOLDER`'s pool), one thread
+    each."""
+    given = _GIVEN if _CONFIGURED else requested()
+    if pixels >= READ_ONE_THREAD_BELOW or given is not None or "torch" not in sys.modules:
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    numba = sys.modules.get("numba")
+    numba_before = numba.get_num_threads() if numba is not None else 1
+    if before <= 1 and numba_before <= 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    if numba is not None:
+        numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+        if numba is not None:
+            numba.set_num_threads(numba_before)

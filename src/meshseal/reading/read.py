@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import MeshsealError
+from ..threads import reading_threads
 from .framing import box_from_points, boxes_from_mask, estimate_background, inner_picture, object_mask
 from .pictures import camera_from_metadata, load_picture_and_codecs, picture_name
 
@@ -129,6 +130,11 @@ class Reader:
         comes from `camera` (one `Cameras`, canonical frame: it overrides the rest), else the picture's
         metadata (unless `register`), else registration assuming a vertical field of view `fov_y`."""
         pixels, alpha, camera_text, codecs, luma = load_picture_and_codecs(image)
+        with reading_threads(pixels.shape[0] * pixels.shape[1]):
+            return self._read(image, pixels, alpha, camera_text, codecs, luma, original, register, fov_y, camera)
+
+    def _read(self, image, pixels, alpha, camera_text, codecs, luma, original, register, fov_y, camera) -> Reading:
+        """`read` of the loaded picture (`load_picture_and_codecs`'s pixels, alpha, camera text, codecs)."""
         given = camera is not None
         from_metadata = original is not None and camera_text is not None and not register and not given
         if alpha is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..threads import reading_threads
 from .read import Reading
 
 SHARPEN_ROUNDS = 2  # a second look sharpens the registered camera again (light refitted) where the first round's reading hints at a mark
@@ -35,15 +36,22 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     reading's p-value stays valid however the camera was picked (rough readings only decide what
     to finish). Other readings, and all of them with `search` False (pooling), come back as they
     are, without what a second look needs."""
+    if not reading.second_look:
+        return reading
+    if not search or not reader.method.second_look:
+        return replace(reading, second_look=())
+    picture = reading.second_look[0]
+    with reading_threads(picture.shape[-2] * picture.shape[-1]):
+        return _look_again(reader, reading, original, key, expect)
+
+
+def _look_again(reader, reading: Reading, original, key, expect) -> Reading:
+    """`look_again` of a registered reading that a second look may change."""
     from .. import payload
     from .registration import polish, sharpen, silhouette_iou
 
-    if not reading.second_look:
-        return reading
     picture, mask, alternatives = reading.second_look
     method = reader.method
-    if not search or not method.second_look:
-        return replace(reading, second_look=())
     stages = 3 if alternatives else 2
     first = replace(reading, second_look=(), tries=stages)
     decision = method.decide([first], key, expect)
