@@ -67,7 +67,7 @@ def test_pooling_decides_once_and_bad_pictures_do_not_stop_the_batch(pictures, c
 
 
 @pytest.mark.heavy
-def test_worker_processes_read_as_one_process_does(pictures, capsys):
+def test_worker_processes_read_as_one_process_does(pictures, capsys, monkeypatch):
     """--workers 2: spawned processes read the pictures; the lines, their order, the errors and the
     pooled decision are those of one process."""
     pictures_named = [pictures / "missing.png", pictures / "views", pictures / "clean.png", "--key", "s3cret"]
@@ -79,6 +79,25 @@ def test_worker_processes_read_as_one_process_does(pictures, capsys):
     assert [r.get("message") for r in together[1]] == [None, "ab42", "ab42", None]
     pooled = _detect(capsys, pictures / "views", "--key", "s3cret", "--pool", "--workers", "2")
     assert _same_reading(pooled[1][0], _detect(capsys, pictures / "views", "--key", "s3cret", "--pool")[1][0])
+    # Without --workers, this process reads until a pool pays (here: from the third picture on).
+    import meshseal.commands.model as model
+
+    monkeypatch.setattr(model, "pool_pays", lambda seconds, remaining, cores, start_cost: len(seconds) >= 2)
+    switched = _detect(capsys, *pictures_named)
+    assert switched[0] == 2 and all(_same_reading(a, b) for a, b in zip(alone[1], switched[1]))
+    assert len(switched[1]) == 4 and switched[2].count("meshseal: error:") == 1
+
+
+def test_a_pool_starts_once_the_pictures_left_would_be_read_sooner_by_it():
+    """`pool_pays`: judged on the pace of the last picture read here (the first pays one-time costs that
+    each worker pays again), against the seconds a worker takes to start."""
+    from meshseal.commands.model import pool_pays
+
+    assert not pool_pays([0.5], 1000, 2, 3.0)  # one picture read: no pace yet
+    assert not pool_pays([0.5, 0.04], 100, 2, 3.0)  # camera known: 2 s of work left, a worker takes 3.5
+    assert pool_pays([0.5, 0.04], 300, 2, 3.0)  # ... 6 s left, read in half
+    assert pool_pays([2.0, 1.5], 6, 2, 3.0) and not pool_pays([2.0, 1.5], 4, 2, 3.0)  # registered pictures
+    assert not pool_pays([2.0, 1.5], 100, 1, 3.0)  # one core: nothing to share
 
 
 def _same_reading(a: dict, b: dict) -> bool:

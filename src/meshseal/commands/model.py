@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from contextlib import closing
 from pathlib import Path
 
@@ -75,8 +76,9 @@ def register(subparsers) -> None:
     detect.add_argument("--json", "--jsonl", dest="json", action="store_true",
                         help="one JSON object per picture (or per pool), one per line")
     detect.add_argument("--workers", type=positive_int(64), default=None,
-                        help="processes reading pictures at once (default: one per core, at most 8, for "
-                             f"{MANY_PICTURES} pictures or more; else 1)")
+                        help="processes reading pictures at once (default: this one, until the pictures "
+                             f"left would be read sooner by one process per core, at most {MAX_WORKERS}, "
+                             "counting the seconds each takes to start)")
     detect.set_defaults(func=run_detect)
 
     evaluate = subparsers.add_parser("eval", help="measure a model on a dataset split")
@@ -281,7 +283,7 @@ def run_embed(args) -> int:
 
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff", ".gif"}
-MANY_PICTURES = 64  # from here on the default reads with one worker per core: each costs seconds to start
+MAX_WORKERS = 8  # the default pool's processes at most (one per core)
 
 
 def picture_paths(paths: list[Path]) -> list[Path]:
@@ -363,6 +365,7 @@ def _describe(result, expect=None) -> str:
 
 
 def run_detect(args) -> int:
+    started = time.perf_counter()  # what this process took to get ready is what a worker would take
     # one picture named: a mistyped name is answered at once; of several, a missing one is that line's error
     require_files((args.mesh, "mesh file"), *([(args.images[0], "picture or folder")] if len(args.images) == 1 else []))
     expect = _expected(args)
@@ -395,8 +398,9 @@ def run_detect(args) -> int:
         from tqdm import tqdm
 
         progress = tqdm(total=len(pictures), unit="picture", file=sys.stderr)
-    workers = args.workers or (min(available_cores(), 8) if len(pictures) >= MANY_PICTURES else 1)
-    with closing(_readings(args, watermarker, original, pictures, min(workers, len(pictures)), expect)) as read:
+    workers = None if args.workers is None else min(args.workers, len(pictures))  # None: as it pays
+    start_cost = time.perf_counter() - started
+    with closing(_readings(args, watermarker, original, pictures, workers, expect, start_cost)) as read:
         for path, outcome, error in read:  # closing: the worker pool ends even if a line fails
             failed += _report(args, watermarker, original, path, outcome, error, progress, key, expect, readings,
                               decisions)
@@ -446,14 +450,47 @@ def _report(args, watermarker, original, path, outcome, error, progress, key, ex
     return 0
 
 
-def _readings(args, watermarker, original, paths: list[Path], workers: int, expect=None):
+def _readings(args, watermarker, original, paths: list[Path], workers: int | None, expect=None,
+              start_cost: float = 0.0):
     """(path, Detection (with --pool: its reading), error text) of each picture, in order, tested for
     `expect` (`_expected`). With more than one worker, spawned processes (one thread each) load the
-    model and the original once and detect in parallel; a pool's decision stays with the caller."""
+    model and the original once and detect in parallel; a pool's decision stays with the caller.
+    `workers` None: this process reads the pictures one after another until `pool_pays` says the
+    rest would be read sooner by one process per core (at most MAX_WORKERS), each of them taking
+    `start_cost` seconds to start (this process's own, model and original included)."""
     task = (args.register, args.fov, _key(args), expect, args.pool)
+    if workers is None:
+        seconds = []
+        for done, path in enumerate(paths):
+            cores = min(available_cores(), MAX_WORKERS, len(paths) - done)
+            if pool_pays(seconds, len(paths) - done, cores, start_cost):
+                yield from _pooled(args, original, paths[done:], cores, task)
+                return
+            begin = time.perf_counter()
+            yield _read_one(watermarker, original, path, *task)
+            seconds.append(time.perf_counter() - begin)
+        return
     if workers <= 1:
         yield from (_read_one(watermarker, original, path, *task) for path in paths)
         return
+    yield from _pooled(args, original, paths, workers, task)
+
+
+def pool_pays(seconds: list[float], remaining: int, cores: int, start_cost: float) -> bool:
+    """Whether `remaining` pictures would be read sooner by `cores` new worker processes than here, one
+    after another, at the pace of the pictures read here so far (`seconds` each; the last one sets the
+    pace: the first also paid one-time costs, which every worker pays again on top of `start_cost`).
+    Judged from the second picture on: a registered picture takes seconds, one whose camera its file
+    gives a few hundredths, so a folder of them starts a pool only when it is large."""
+    if len(seconds) < 2 or cores < 2:
+        return False
+    pace = seconds[-1]
+    warm_up = max(0.0, seconds[0] - pace)
+    return pace * remaining * (1.0 - 1.0 / cores) > start_cost + warm_up
+
+
+def _pooled(args, original, paths: list[Path], workers: int, task: tuple):
+    """`_readings` of `paths` by `workers` spawned processes."""
     import multiprocessing
     import os
 
