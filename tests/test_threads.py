@@ -134,8 +134,8 @@ def test_a_second_policy_in_one_process_leaves_numbas_running_pool_alone():
 
 READING = """
 import json, os
-for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MESHSEAL_THREADS"):
-    os.environ.pop(name, None)
+for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MESHSEAL_THREADS"):
+    os.environ.pop(name, None)  # (set by earlier in-process commands of the test session)
 os.environ.update(%r)
 from meshseal import threads
 threads.available_cores = lambda: 2
