@@ -11,8 +11,8 @@ many times the work. The policy:
   (`os.sched_getaffinity`) that other jobs are not already keeping busy (the load average and the
   number of runnable tasks now, whichever is higher), at least one;
 - each worker of a pool: one thread (the pool has one worker per core);
-- reading a picture of under a million pixels: one thread whatever the count (`reading_threads`): its
-  operations are too small to share between sleeping threads;
+- reading a picture of under a million pixels: one thread, unless the user gave a count
+  (`reading_threads`): its operations are too small to share between sleeping threads;
 - idle threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, `KMP_BLOCKTIME=0`);
 - a count the user gives wins: `MESHSEAL_THREADS`, else `OMP_NUM_THREADS`.
 
