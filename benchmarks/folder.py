@@ -13,8 +13,8 @@ codes in turn, `--rounds` times (the order swapped each round); `uptime` before 
     python benchmarks/folder.py [--ref COMMIT] [--marked 2] [--others 18] [--rounds 1] [--work DIR]
 
 Last line: `seconds=` (this tree, median over rounds), `ref_seconds=`, `xref=` their ratio, `detected=`
-(this tree's lines that say detected), `same_lines=` (1 where both codes print the same lines, p-values
-and overlaps rounded).
+(this tree's lines that say detected), `same_lines=` (1 where both codes print the same lines, their
+numbers within 2 %; the lines that differ are printed above it).
 """
 
 from __future__ import annotations
@@ -78,13 +78,16 @@ def detect(source: Path, pictures: Path) -> tuple[float, list[str]]:
     return seconds, out.stdout.splitlines()
 
 
-def rounded(lines: list[str]) -> list[str]:
-    """The lines with p-values and overlaps to two significant figures (a worker's one thread moves a
-    sum's last digits)."""
-    def short(match):
-        return f"{float(match.group(0)):.2g}"
+NUMBER = re.compile(r"\d+\.?\d*(?:e[-+]?\d+)?")
 
-    return [re.sub(r"\d+\.?\d*(e[-+]?\d+)?", short, line) for line in lines]
+
+def same_line(a: str, b: str) -> bool:
+    """The same words, and numbers (p-values, overlaps) within 2 % of each other: a worker's one thread
+    moves a sum's last digits, and a rounded figure can fall either side of its last printed digit."""
+    if NUMBER.sub("#", a) != NUMBER.sub("#", b):
+        return False
+    pairs = zip((float(x) for x in NUMBER.findall(a)), (float(x) for x in NUMBER.findall(b)))
+    return all(abs(x - y) <= 0.02 * max(abs(x), abs(y)) + 1e-3 for x, y in pairs)
 
 
 def main() -> None:
@@ -120,7 +123,11 @@ def main() -> None:
                 print(f"  {code}: {value:.1f} s, {detected} of {len(lines[code])} detected", flush=True)
     print(f"  {uptime()}")
     tree, ref = (statistics.median(seconds[code]) for code in ("tree", f"ref {label}"))
-    same = rounded(lines["tree"]) == rounded(lines[f"ref {label}"])
+    pairs = list(zip(lines["tree"], lines[f"ref {label}"]))
+    same = len(lines["tree"]) == len(lines[f"ref {label}"]) and all(same_line(a, b) for a, b in pairs)
+    for mine, theirs in pairs:
+        if not same_line(mine, theirs):
+            print(f"  differs:\n    tree: {mine}\n    ref:  {theirs}")
     detected = sum(": detected" in line for line in lines["tree"])
     print(f"seconds={tree:.1f} ref_seconds={ref:.1f} xref={tree / ref:.3f} detected={detected} same_lines={int(same)}")
 
