@@ -20,6 +20,7 @@ numbers within 2 %; the lines that differ are printed above it).
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import statistics
 import subprocess
@@ -38,8 +39,6 @@ def uptime() -> str:
 
 
 def cli(source: Path) -> tuple[list[str], dict]:
-    import os
-
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MESHSEAL_THREADS")}
     return [sys.executable, "-m", "meshseal.cli"], env | {"PYTHONPATH": str(source)}
 

@@ -492,7 +492,6 @@ def pool_pays(seconds: list[float], remaining: int, cores: int, start_cost: floa
 def _pooled(args, original, paths: list[Path], workers: int, task: tuple):
     """`_readings` of `paths` by `workers` spawned processes."""
     import multiprocessing
-    import os
 
     from ..threads import worker_environment
 
