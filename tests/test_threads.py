@@ -161,3 +161,32 @@ def test_a_small_picture_is_read_on_one_thread_unless_the_user_says(env, inside)
     seen = json.loads(out.stdout.strip().splitlines()[-1])
     big = str(threads.READ_ONE_THREAD_BELOW)
     assert seen == {"start": [2, 2], str(256 * 256): [inside, inside], big: [2, 2], "after": [2, 2]}
+
+
+LOADED_WHILE_READING = """
+import json, os, sys
+for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MESHSEAL_THREADS"):
+    os.environ.pop(name, None)
+from meshseal import threads
+threads.available_cores = lambda: 2
+threads.busy_cores = lambda: 0.0
+threads.configure()
+import torch
+from meshseal.render import compiled
+seen = {"before": "numba" in sys.modules}
+with threads.reading_threads(256 * 256):
+    compiled.load()  # the renderer's kernels load during a small picture's reading
+    import numba
+    seen["inside"] = [torch.get_num_threads(), numba.get_num_threads()]
+seen["after"] = [torch.get_num_threads(), numba.get_num_threads()]
+print(json.dumps(seen))
+"""
+
+
+def test_numba_loaded_during_a_reading_takes_the_readings_count_then_the_policys():
+    """The renderer imports numba on its first compiled call (`render.compiled`), which may come in
+    the middle of a small picture's one-thread reading: numba starts on one thread there, and has the
+    policy's two afterwards, as torch does."""
+    out = subprocess.run([sys.executable, "-c", LOADED_WHILE_READING], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-1500:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == {"before": False, "inside": [1, 1], "after": [2, 2]}

@@ -153,3 +153,17 @@ def reading_threads(pixels: int):
         torch.set_num_threads(before)
         if numba is not None:
             numba.set_num_threads(numba_before)
+        elif "numba" in sys.modules:  # loaded while the picture was read (`numba_loaded`): torch's count again
+            numba_loaded()
+
+
+def numba_loaded() -> None:
+    """numba was imported just now (the renderer loads its compiled kernels on first use,
+    `render.compiled`): it starts with torch's thread count of the moment (one while a small
+    picture is read, `reading_threads`) rather than the count `configure` wrote for it."""
+    torch, numba = sys.modules.get("torch"), sys.modules.get("numba")
+    if torch is not None and numba is not None:
+        count = torch.get_num_threads()
+        numba.get_num_threads()  # starts numba's pool, which sets the shared OpenMP runtime's count to its own
+        numba.set_num_threads(max(1, min(count, numba.config.NUMBA_NUM_THREADS)))
+        torch.set_num_threads(count)

@@ -12,15 +12,16 @@ apply (gradients, another device or dtype, a single plane, which torch convolves
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 
 from ..imaging import blur_radius
 from ..imaging import gaussian_blur as torch_blur
+from . import compiled
+from .compiled import njit
 
 
-@numba.njit(fastmath={"contract"}, cache=True)
+@njit(fastmath={"contract"}, cache=True)
 def _separable(planes, kernel, radius):  # pragma: no cover - compiled
     count, height, width = planes.shape
     taps = kernel.shape[0]
@@ -59,6 +60,9 @@ def gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     if (sigma <= 0 or image.device.type != "cpu" or image.dtype != torch.float32 or image.dim() != 4
             or image.shape[1] < 2 or image.numel() == 0 or (image.requires_grad and torch.is_grad_enabled())):
         return torch_blur(image, sigma)
+    if compiled.spare(image.numel()):  # a small job while the kernels are not loaded: torch's own, the same bits
+        with compiled.in_torch():
+            return torch_blur(image, sigma)
     radius = blur_radius(sigma)
     x = torch.arange(-radius, radius + 1, dtype=image.dtype)
     kernel = torch.exp(-x * x / (2 * sigma * sigma))

@@ -12,9 +12,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import torch
+
+from . import compiled
+from .compiled import njit, prange
 
 
 SPAN_REACH = 1e6  # px: screen coordinates under this solve a row's span to well under a pixel
@@ -22,7 +24,7 @@ SPAN_SLOPE = 1e-3  # an edge whose function changes less than this a pixel along
 SPAN_WIDEST = 4  # boxes fewer columns wide than this are scanned whole: solving costs more than it skips
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _edge_span(offset, slope, first, last):  # pragma: no cover - compiled
     """Columns first..last narrowed to those within a pixel of where offset + slope * (col + 0.5) >= 0."""
     if slope > SPAN_SLOPE:
@@ -32,7 +34,7 @@ def _edge_span(offset, slope, first, last):  # pragma: no cover - compiled
     return first, last
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _zbuffer_one(xy, z, w, faces, near, face_out, depth, top, left, height, width):  # pragma: no cover - compiled
     """Rows top.. and columns left.. of a height x width raster: face_out[row - top, col - left]."""
     bottom, right = top + face_out.shape[0] - 1, left + face_out.shape[1] - 1
@@ -80,15 +82,74 @@ def _zbuffer_one(xy, z, w, faces, near, face_out, depth, top, left, height, widt
                     face_out[row - top, col - left] = f
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True)
 def _zbuffer(xy, z, w, faces, near, face_out, depth, top, left, height, width):  # pragma: no cover - compiled
     n_faces_sets = faces.shape[0]
-    for b in numba.prange(xy.shape[0]):
+    for b in prange(xy.shape[0]):
         _zbuffer_one(xy[b], z[b], w[b], faces[min(np.int64(b), n_faces_sets - 1)], near, face_out[b], depth[b],
                      top, left, height, width)
 
 
-@numba.njit(cache=True)
+PAIRS_AT_ONCE = 1 << 20  # `_zbuffer_torch` tests at most about this many (face, pixel) pairs at a time
+
+
+def _zbuffer_torch(xy, z, w, faces, near, face_out, depth, top, left, height, width):
+    """`_zbuffer` in torch, for a process that has not loaded the compiled kernels (`compiled.spare`):
+    every (face, pixel) pair of each face's box tested at once (faces in runs of about PAIRS_AT_ONCE
+    pairs), the same arithmetic in the same order (float64, no fused operations), so the same faces
+    and depths: the nearest depth per pixel, and of the faces at it the first, as the kernel's strict
+    test keeps. A face with a vertex at or behind `near` or a coordinate not finite draws nothing, as
+    in the kernel."""
+    n_batch, rows, columns = face_out.shape
+    bottom, right = top + rows - 1, left + columns - 1
+    all_faces = torch.from_numpy(faces)
+    for b in range(n_batch):
+        corners = all_faces[min(b, len(all_faces) - 1)]
+        cx, cy = torch.from_numpy(xy[b, :, 0])[corners], torch.from_numpy(xy[b, :, 1])[corners]  # (F, 3)
+        cz, cw = torch.from_numpy(z[b])[corners], torch.from_numpy(w[b])[corners]
+        area = (cx[:, 1] - cx[:, 0]) * (cy[:, 2] - cy[:, 0]) - (cx[:, 2] - cx[:, 0]) * (cy[:, 1] - cy[:, 0])
+        drawn = (cw > near).all(1) & (area.abs() >= 1e-12) & cx.isfinite().all(1) & cy.isfinite().all(1)
+        col_lo = torch.ceil(cx.amin(1) - 0.5).clamp(-1e9, 1e9).long().clamp_min(max(0, left))
+        col_hi = torch.floor(cx.amax(1) - 0.5).clamp(-1e9, 1e9).long().clamp_max(min(width - 1, right))
+        row_lo = torch.ceil(cy.amin(1) - 0.5).clamp(-1e9, 1e9).long().clamp_min(max(0, top))
+        row_hi = torch.floor(cy.amax(1) - 0.5).clamp(-1e9, 1e9).long().clamp_max(min(height - 1, bottom))
+        box_w = (col_hi - col_lo + 1).clamp_min(0)
+        count = torch.where(drawn, box_w * (row_hi - row_lo + 1).clamp_min(0), 0)
+        listed = count.nonzero().squeeze(1)
+        nearest = torch.from_numpy(depth[b]).view(-1)  # inf, then each run's nearest where nearer
+        first = torch.from_numpy(face_out[b]).view(-1)
+        ends = count[listed].cumsum(0)
+        marks = torch.tensor(range(PAIRS_AT_ONCE, int(ends[-1]) if len(ends) else 0, PAIRS_AT_ONCE), dtype=ends.dtype)
+        bounds = torch.searchsorted(ends, marks, right=True).tolist()
+        for run in torch.tensor_split(listed, bounds):
+            if len(run) == 0:
+                continue
+            run_count = count[run]
+            f = run.repeat_interleave(run_count)  # a face per pair, its box's pixels in row-major order
+            offset = torch.arange(len(f)) - (run_count.cumsum(0) - run_count).repeat_interleave(run_count)
+            row = row_lo[f] + torch.div(offset, box_w[f], rounding_mode="floor")
+            col = col_lo[f] + offset % box_w[f]
+            px, py = col.double() + 0.5, row.double() + 0.5
+            (x0, x1, x2), (y0, y1, y2) = cx[f].unbind(1), cy[f].unbind(1)
+            inv_area = 1.0 / area[f]
+            l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv_area
+            l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv_area
+            l2 = 1.0 - l0 - l1
+            fz = cz[f]
+            here = l0 * fz[:, 0] + l1 * fz[:, 1] + l2 * fz[:, 2]
+            inside = (l0 >= 0.0) & (l1 >= 0.0) & (l2 >= 0.0) & (here >= -1.0) & (here <= 1.0)
+            here, f = here[inside], f[inside]
+            pixel = (row[inside] - top) * columns + (col[inside] - left)
+            run_nearest = torch.full_like(nearest, math.inf).scatter_reduce_(0, pixel, here, "amin")
+            at_nearest = here == run_nearest[pixel]
+            run_first = torch.full_like(first, torch.iinfo(torch.int64).max)
+            run_first.scatter_reduce_(0, pixel[at_nearest], f[at_nearest], "amin")
+            nearer = run_nearest < nearest  # a tie keeps the earlier run's face, the lower index
+            nearest[nearer] = run_nearest[nearer]
+            first[nearer] = run_first[nearer]
+
+
+@njit(cache=True)
 def _texel_coverage(corners, used):  # pragma: no cover - compiled
     height, width = used.shape
     for f in range(corners.shape[0]):
@@ -228,8 +289,12 @@ def _visible(clip, faces, height, width, near, align, with_depth=False):
         face_out = np.full((n_batch, bottom - top, right - left), -1, dtype=np.int64)
         depth = np.full((n_batch, bottom - top, right - left), np.inf, dtype=np.float64)
         if face_out.size:
-            _zbuffer(np.ascontiguousarray(xy), np.ascontiguousarray(z), np.ascontiguousarray(w),
-                     np.ascontiguousarray(face_array), near, face_out, depth, top, left, height, width)
+            arrays = [np.ascontiguousarray(a) for a in (xy, z, w, face_array)]
+            if compiled.spare(face_out.size):  # a small job while the kernels are not loaded: the same in torch
+                with compiled.in_torch():
+                    _zbuffer_torch(*arrays, near, face_out, depth, top, left, height, width)
+            else:
+                _zbuffer(*arrays, near, face_out, depth, top, left, height, width)
     if with_depth:
         return torch.from_numpy(face_out).to(clip.device), (top, left), torch.from_numpy(depth).to(clip.device)
     return torch.from_numpy(face_out).to(clip.device), (top, left)

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import functools
 
-import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
+
+from . import compiled
+from .compiled import njit, prange
 
 
 @functools.lru_cache(maxsize=16)
@@ -55,13 +57,13 @@ def _accumulate_conv(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.T
     return F.conv2d(stacked, weight, padding=1).permute(0, 2, 3, 1)  # (B, H, W, C+1)
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True)
 def _accumulate_forward(color, alpha, xy, gauss, inv_var, out):  # pragma: no cover - compiled
     """out[b, i, j] = sum over sources q = (i - oy, j - ox) with alpha != 0 of
     alpha(q) g_o (1 + (ox dx(q) + oy dy(q)) / sigma^2) * (color(q), 1); d(q) = xy(q) - centre(q).
     Each output row is written by one thread (gather over the 3 source rows)."""
     n_batch, height, width, channels = color.shape
-    for line in numba.prange(n_batch * height):
+    for line in prange(n_batch * height):
         b = line // height
         i = line - b * height
         out[b, i] = 0.0
@@ -86,13 +88,13 @@ def _accumulate_forward(color, alpha, xy, gauss, inv_var, out):  # pragma: no co
                     out[b, i, j, channels] += w
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True)
 def _accumulate_backward(color, alpha, xy, gauss, inv_var, grad_out, every_alpha,
                          grad_color, grad_alpha, grad_xy):  # pragma: no cover - compiled
     """The adjoint of _accumulate_forward, per source pixel q over its 9 targets q + o. Sources with
     alpha = 0 get zero colour and position gradients; their alpha gradient only if `every_alpha`."""
     n_batch, height, width, channels = color.shape
-    for line in numba.prange(n_batch * height):
+    for line in prange(n_batch * height):
         b = line // height
         i = line - b * height
         for j in range(width):
@@ -140,12 +142,12 @@ def _accumulate_backward(color, alpha, xy, gauss, inv_var, grad_out, every_alpha
 FULL = 1e-4
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True)
 def _composite_forward(accumulated, background, image, coverage):  # pragma: no cover - compiled
     """Fully covered (cov >= 1 - FULL): image = acc[:C] / cov, coverage 1.
     Otherwise: image = acc[:C] + (1 - cov) * background[b], coverage cov."""
     n_batch, height, width, channels = image.shape
-    for line in numba.prange(n_batch * height):
+    for line in prange(n_batch * height):
         b = line // height
         i = line - b * height
         for j in range(width):
@@ -160,11 +162,11 @@ def _composite_forward(accumulated, background, image, coverage):  # pragma: no 
                 coverage[b, i, j] = cov
 
 
-@numba.njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True)
 def _composite_backward(accumulated, background, grad_image, grad_coverage, grad_accumulated):  # pragma: no cover
     """Adjoint of _composite_forward w.r.t. acc."""
     n_batch, height, width, channels = grad_image.shape
-    for line in numba.prange(n_batch * height):
+    for line in prange(n_batch * height):
         b = line // height
         i = line - b * height
         for j in range(width):
@@ -184,6 +186,41 @@ def _composite_backward(accumulated, background, grad_image, grad_coverage, grad
             grad_accumulated[b, i, j, channels] = grad_cov
 
 
+def _forward_torch(color, alpha, xy, gauss, inv_var, background):
+    """`_accumulate_forward` then `_composite_forward` in torch, for a process that has not loaded
+    the compiled kernels (`compiled.spare`): the same arithmetic in the same order, so the same bits.
+    Each target pixel adds its nine sources as the kernel meets them (source rows below, at and
+    above it; in each, the source columns from left to right), each term in float64 and the sum
+    rounded to the arrays' type after each, as the kernel's `+=` on the arrays does. numpy in and out:
+    (accumulated, image, coverage)."""
+    c, a, xy = (torch.from_numpy(x) for x in (color, alpha, xy))
+    n_batch, height, width, channels = c.shape
+    rows = torch.arange(height, dtype=torch.float64).reshape(1, height, 1) + 0.5
+    cols = torch.arange(width, dtype=torch.float64).reshape(1, 1, width) + 0.5
+    dx, dy = xy[..., 0].double() - cols, xy[..., 1].double() - rows  # float32 - float64, as in the kernel
+    g = torch.from_numpy(gauss)
+    inv = float(inv_var)
+    values = torch.cat([c, torch.ones_like(a)[..., None]], -1)  # what each source adds, times its weight
+    total = c.new_zeros(n_batch, height, width, channels + 1)
+    padded = [torch.nn.functional.pad(x, pad) for x, pad in ((a, (1, 1, 1, 1)), (dx, (1, 1, 1, 1)), (dy, (1, 1, 1, 1)))]
+    padded_values = torch.nn.functional.pad(values, (0, 0, 1, 1, 1, 1))
+    for oy in (-1, 0, 1):
+        for ox in (1, 0, -1):  # the source column j - ox, from left to right
+            window = (slice(None), slice(1 - oy, 1 - oy + height), slice(1 - ox, 1 - ox + width))
+            source_alpha, source_dx, source_dy = (x[window] for x in padded)
+            weight = g[oy + 1, ox + 1].double()
+            weight = (weight + weight * (ox * source_dx + oy * source_dy) * inv) * source_alpha.double()
+            term = weight[..., None] * padded_values[window].double()
+            total = torch.where((source_alpha != 0.0)[..., None], (total.double() + term).to(total.dtype), total)
+    coverage = total[..., channels]
+    full = (coverage.double() >= 1.0 - FULL)[..., None]
+    covered = total[..., :channels] / coverage[..., None]
+    blended = (total[..., :channels].double()
+               + (1.0 - coverage.double())[..., None] * torch.from_numpy(background).double()[:, None, None, :])
+    image = torch.where(full, covered, blended.to(c.dtype))
+    return total.numpy(), image.numpy(), torch.where(full[..., 0], torch.ones_like(coverage), coverage).numpy()
+
+
 def _numpy(tensor: torch.Tensor, dtype) -> np.ndarray:
     return tensor.detach().to(dtype).contiguous().numpy()
 
@@ -199,11 +236,16 @@ class _SplatCPU(torch.autograd.Function):
         bg = _numpy(background, dtype)
         n_batch, height, width, channels = c.shape
         gauss = _kernels(sigma, dtype, "cpu")[0].numpy()
-        accumulated = np.empty((n_batch, height, width, channels + 1), dtype=c.dtype)
-        _accumulate_forward(c, a, xy, gauss, c.dtype.type(1.0 / (sigma * sigma)), accumulated)
-        image = np.empty_like(c)
-        coverage = np.empty_like(a)
-        _composite_forward(accumulated, bg, image, coverage)
+        inv_var = c.dtype.type(1.0 / (sigma * sigma))
+        if compiled.spare(n_batch * height * width):  # a small job while the kernels are not loaded
+            with compiled.in_torch():
+                accumulated, image, coverage = _forward_torch(c, a, xy, gauss, inv_var, bg)
+        else:
+            accumulated = np.empty((n_batch, height, width, channels + 1), dtype=c.dtype)
+            _accumulate_forward(c, a, xy, gauss, inv_var, accumulated)
+            image = np.empty_like(c)
+            coverage = np.empty_like(a)
+            _composite_forward(accumulated, bg, image, coverage)
         ctx.save_for_backward(color, alpha, splat_xy, background)
         ctx.sigma, ctx.accumulated = sigma, accumulated  # a private array: no reference to the outputs
         return torch.from_numpy(image), torch.from_numpy(coverage)

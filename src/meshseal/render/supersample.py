@@ -11,16 +11,16 @@ terms of `PhongShader`); the sums agree with it to float rounding (tests/test_re
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .compiled import njit
 from .lighting import ATTENUATION, K_AMBIENT, K_DIFFUSE
 from .rasterizer import visible_faces_within, whole_raster
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _box_sums(pix_to_face, first_row, first_col, width, clip, faces, positions, normals, uvs, has_uv, face_material, texels,
               texel_offset, texel_height, texel_width, textured, diffuse, ambient, eye, light_position,
               light_intensity, half, scale, k_ambient, k_diffuse, attenuation, sums):  # pragma: no cover - compiled
