@@ -191,27 +191,35 @@ def _forward_torch(color, alpha, xy, gauss, inv_var, background):
     the compiled kernels (`compiled.spare`): the same arithmetic in the same order, so the same bits.
     Each target pixel adds its nine sources as the kernel meets them (source rows below, at and
     above it; in each, the source columns from left to right), each term in float64 and the sum
-    rounded to the arrays' type after each, as the kernel's `+=` on the arrays does. numpy in and out:
+    rounded to the arrays' type after each, as the kernel's `+=` on the arrays does; only over the
+    box that sources of non-zero alpha reach (elsewhere the sums are 0). numpy in and out:
     (accumulated, image, coverage)."""
     c, a, xy = (torch.from_numpy(x) for x in (color, alpha, xy))
     n_batch, height, width, channels = c.shape
-    rows = torch.arange(height, dtype=torch.float64).reshape(1, height, 1) + 0.5
-    cols = torch.arange(width, dtype=torch.float64).reshape(1, 1, width) + 0.5
-    dx, dy = xy[..., 0].double() - cols, xy[..., 1].double() - rows  # float32 - float64, as in the kernel
-    g = torch.from_numpy(gauss)
-    inv = float(inv_var)
-    values = torch.cat([c, torch.ones_like(a)[..., None]], -1)  # what each source adds, times its weight
     total = c.new_zeros(n_batch, height, width, channels + 1)
-    padded = [torch.nn.functional.pad(x, pad) for x, pad in ((a, (1, 1, 1, 1)), (dx, (1, 1, 1, 1)), (dy, (1, 1, 1, 1)))]
-    padded_values = torch.nn.functional.pad(values, (0, 0, 1, 1, 1, 1))
-    for oy in (-1, 0, 1):
-        for ox in (1, 0, -1):  # the source column j - ox, from left to right
-            window = (slice(None), slice(1 - oy, 1 - oy + height), slice(1 - ox, 1 - ox + width))
-            source_alpha, source_dx, source_dy = (x[window] for x in padded)
-            weight = g[oy + 1, ox + 1].double()
-            weight = (weight + weight * (ox * source_dx + oy * source_dy) * inv) * source_alpha.double()
-            term = weight[..., None] * padded_values[window].double()
-            total = torch.where((source_alpha != 0.0)[..., None], (total.double() + term).to(total.dtype), total)
+    rows, cols = (a != 0).any(0).any(1).nonzero()[:, 0], (a != 0).any(0).any(0).nonzero()[:, 0]
+    if len(rows):
+        top, bottom = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, height)
+        left, right = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, width)
+        box = (slice(None), slice(top, bottom), slice(left, right))
+        box_h, box_w = bottom - top, right - left
+        centre_y = torch.arange(top, bottom, dtype=torch.float64).reshape(1, box_h, 1) + 0.5
+        centre_x = torch.arange(left, right, dtype=torch.float64).reshape(1, 1, box_w) + 0.5
+        dx, dy = xy[box][..., 0].double() - centre_x, xy[box][..., 1].double() - centre_y  # float32 - float64, as there
+        values = torch.cat([c[box], torch.ones_like(a[box])[..., None]], -1).double()  # times each source's weight
+        pad = lambda x: torch.nn.functional.pad(x, (1, 1, 1, 1))  # noqa: E731  sources off the box: alpha 0
+        source_alpha, source_dx, source_dy = pad(a[box]), pad(dx), pad(dy)
+        source_values = torch.nn.functional.pad(values, (0, 0, 1, 1, 1, 1))
+        sums = total[box]
+        g, inv = torch.from_numpy(gauss).double(), float(inv_var)
+        for oy in (-1, 0, 1):
+            for ox in (1, 0, -1):  # the source column j - ox, from left to right
+                at = (slice(None), slice(1 - oy, 1 - oy + box_h), slice(1 - ox, 1 - ox + box_w))
+                weight = g[oy + 1, ox + 1]
+                weight = (weight + weight * (ox * source_dx[at] + oy * source_dy[at]) * inv) * source_alpha[at].double()
+                added = (sums.double() + weight[..., None] * source_values[at]).to(sums.dtype)
+                sums = torch.where((source_alpha[at] != 0.0)[..., None], added, sums)
+        total[box] = sums
     coverage = total[..., channels]
     full = (coverage.double() >= 1.0 - FULL)[..., None]
     covered = total[..., :channels] / coverage[..., None]
