@@ -190,3 +190,40 @@ def test_numba_loaded_during_a_reading_takes_the_readings_count_then_the_policys
     out = subprocess.run([sys.executable, "-c", LOADED_WHILE_READING], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-1500:]
     assert json.loads(out.stdout.strip().splitlines()[-1]) == {"before": False, "inside": [1, 1], "after": [2, 2]}
+
+
+REVISITED = """
+import json, os, sys
+for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MESHSEAL_THREADS"):
+    os.environ.pop(name, None)
+os.environ.update(%r)
+from meshseal import threads
+threads.available_cores = lambda: 2
+threads.busy_cores = lambda: 0.0  # started on an idle two-core machine
+threads.REVISIT_SECONDS = 0.0
+threads.configure()
+import torch
+others = iter([0, 2, 2, 2, 0, 0, 0, 2, 2])
+threads.others_running = lambda: next(others)
+seen = []
+for step in range(7):
+    threads.revisit()
+    seen.append(torch.get_num_threads())
+with threads.reading_threads(256 * 256):  # a small picture's one thread is not revisited
+    threads.revisit()
+    threads.revisit()
+    seen.append(torch.get_num_threads())
+print(json.dumps(seen))
+"""
+
+
+@pytest.mark.parametrize("env, expected", [({}, [2, 1, 1, 1, 1, 2, 2, 1]), ({"MESHSEAL_THREADS": "2"}, [2] * 7 + [2])])
+def test_a_long_command_gives_up_a_thread_while_other_jobs_run(env, expected):
+    """`revisit` (each render, each picture read) counts the other jobs' running threads again: the
+    policy's two threads become one while two other threads run (the median of the last three looks,
+    once there are two) and two again once they stop; a count the user gave stays, and so does a small
+    picture's one thread."""
+    out = subprocess.run([sys.executable, "-c", REVISITED % (env,)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-1500:]
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == expected
+

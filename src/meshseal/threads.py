@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from contextlib import contextmanager
 
 ENV = "MESHSEAL_THREADS"
@@ -38,6 +39,10 @@ _CONFIGURED = False
 READ_ONE_THREAD_BELOW = 1024 * 1024  # pixels: a picture smaller than this is read on one thread (`reading_threads`)
 _COUNTS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
 _PASSIVE = {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
+REVISIT_SECONDS = 1.0  # a long command looks at the other jobs again at most this often (`revisit`)
+_looks: list[float] = []  # `revisit`'s last few counts of other jobs' running threads
+_next_look = 0.0
+_pinned = 0  # `reading_threads` blocks holding one thread now
 
 
 def available_cores() -> int:
@@ -144,12 +149,15 @@ def reading_threads(pixels: int):
     if before <= 1 and numba_before <= 1:
         yield
         return
+    global _pinned
     torch.set_num_threads(1)
     if numba is not None:
         numba.set_num_threads(1)
+    _pinned += 1
     try:
         yield
     finally:
+        _pinned -= 1
         torch.set_num_threads(before)
         if numba is not None:
             numba.set_num_threads(numba_before)
@@ -167,3 +175,55 @@ def numba_loaded() -> None:
         numba.get_num_threads()  # starts numba's pool, which sets the shared OpenMP runtime's count to its own
         numba.set_num_threads(max(1, min(count, numba.config.NUMBA_NUM_THREADS)))
         torch.set_num_threads(count)
+
+
+def others_running() -> int | None:
+    """Threads of other processes running or waiting to run at this instant: the kernel's count of
+    runnable tasks (/proc/loadavg) less this process's own running threads; None where the system
+    does not say."""
+    try:
+        with open("/proc/loadavg") as file:
+            runnable = int(file.read().split()[3].split("/")[0])
+        own = 0
+        for task in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{task}/stat") as file:
+                    stat = file.read()
+            except OSError:  # the thread ended meanwhile
+                continue
+            own += stat[stat.rindex(")") + 2] == "R"
+    except (OSError, ValueError, IndexError):
+        return None
+    return max(runnable - own, 0)
+
+
+def revisit() -> None:
+    """Between units of a long command's work (each render, each picture read): at most every
+    REVISIT_SECONDS, the policy's count again from the other jobs running now (the median of the last
+    three looks, once there are two), so that a command started on an idle machine gives up a thread
+    when other jobs start and takes it back when they end; `configure` chooses once, at the start.
+    Only where `configure` applied the policy (not a count the user gave, nor a pool's worker, whose
+    count is given) and not while a small picture is read on one thread (`reading_threads`)."""
+    global _next_look
+    if not _CONFIGURED or _GIVEN is not None or _pinned or "torch" not in sys.modules:
+        return
+    now = time.monotonic()
+    if now < _next_look:
+        return
+    _next_look = now + REVISIT_SECONDS
+    seen = others_running()
+    if seen is None:
+        return
+    _looks.append(seen)
+    del _looks[:-3]
+    if len(_looks) < 2:
+        return
+    cores = available_cores()
+    n = max(1, min(cores, cores - sorted(_looks)[len(_looks) // 2]))
+    import torch
+
+    if n != torch.get_num_threads():
+        torch.set_num_threads(n)
+        numba = sys.modules.get("numba")
+        if numba is not None:
+            numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))

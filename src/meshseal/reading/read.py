@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import MeshsealError
-from ..threads import reading_threads
+from ..threads import reading_threads, revisit
 from .framing import box_from_points, boxes_from_mask, estimate_background, inner_picture, object_mask
 from .pictures import camera_from_metadata, load_picture_and_codecs, picture_name
 
@@ -130,6 +130,7 @@ class Reader:
         comes from `camera` (one `Cameras`, canonical frame: it overrides the rest), else the picture's
         metadata (unless `register`), else registration assuming a vertical field of view `fov_y`."""
         pixels, alpha, camera_text, codecs, luma = load_picture_and_codecs(image)
+        revisit()  # one of many pictures: the thread count again from the jobs running now
         with reading_threads(pixels.shape[0] * pixels.shape[1]):
             return self._read(image, pixels, alpha, camera_text, codecs, luma, original, register, fov_y, camera)
 

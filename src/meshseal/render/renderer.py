@@ -7,6 +7,7 @@ from typing import Protocol
 
 import torch
 
+from .. import threads
 from ..mesh.core import Mesh
 from .cameras import Cameras
 from .interpolate import interpolate, scatter_to_image
@@ -133,6 +134,7 @@ class MeshRenderer:
         rasterization of the same positions and cameras to reuse (re-shading a view skips rasterizing);
         `surface`: `surface` of the same mesh's geometry, textures and materials at those fragments
         (re-lighting it skips the lookups)."""
+        threads.revisit()  # a long run of renders gives up a thread to jobs that started since (and takes it back)
         n_batch = len(cameras)
         dtype, device = batch.positions.dtype, batch.positions.device
         cameras, lights = cameras.to(device, dtype), lights.to(device, dtype)
