@@ -14,6 +14,8 @@ many times the work. The policy:
 - reading a picture of under a million pixels: one thread, unless the user gave a count
   (`reading_threads`): its operations are too small to share between sleeping threads;
 - idle threads sleep instead of spinning (`OMP_WAIT_POLICY=PASSIVE`, `KMP_BLOCKTIME=0`);
+- a long command (renders, a folder's pictures) looks again each second (`revisit`) and gives up a
+  thread while other jobs run, and takes it back after;
 - a count the user gives wins: `MESHSEAL_THREADS`, else `OMP_NUM_THREADS`.
 
 numba keeps the threading layer it picks itself (OpenMP where TBB is not installed): with idle threads
