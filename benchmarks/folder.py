@@ -11,6 +11,10 @@ policy (`OMP_NUM_THREADS`, `NUMBA_NUM_THREADS` and `MESHSEAL_THREADS` removed fr
 codes in turn, `--rounds` times (the order swapped each round); `uptime` before each command.
 
     python benchmarks/folder.py [--ref COMMIT] [--marked 2] [--others 18] [--rounds 1] [--work DIR]
+                                [--tree-args "--quick"]
+
+`--tree-args`: more arguments for this tree's command only (`--ref HEAD --tree-args --quick`: the same
+code, a quick scan against a full one).
 
 Last line: `seconds=` (this tree, median over rounds), `ref_seconds=`, `xref=` their ratio, `detected=`
 (this tree's lines that say detected), `same_lines=` (1 where both codes print the same lines, their
@@ -66,10 +70,10 @@ def prepare(folder: Path, marked: int, others: int) -> None:
         Image.open(views / f"other_{k:02d}_0.png").convert("RGB").save(pictures / f"other_{k:02d}.png")
 
 
-def detect(source: Path, pictures: Path) -> tuple[float, list[str]]:
+def detect(source: Path, pictures: Path, extra: list[str] = ()) -> tuple[float, list[str]]:
     command, env = cli(source)
     start = time.perf_counter()
-    out = subprocess.run(command + ["detect", str(pictures), "--mesh", str(FIXTURES / "bunny.glb")], env=env,
+    out = subprocess.run(command + ["detect", str(pictures), "--mesh", str(FIXTURES / "bunny.glb"), *extra], env=env,
                          capture_output=True, text=True)
     seconds = time.perf_counter() - start
     if out.returncode not in (0, 1):
@@ -96,6 +100,7 @@ def main() -> None:
     parser.add_argument("--others", type=int, default=18)
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--work", type=Path, default=None, help="folder for the pictures (kept, reused)")
+    parser.add_argument("--tree-args", default="", help="more arguments for this tree's `meshseal detect` only")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="folderbench_"))
     if not (work / "pictures").is_dir():
@@ -110,13 +115,13 @@ def main() -> None:
                                text=True).stdout.strip()
         codes = {f"ref {label}": ref_root / "src", "tree": ROOT / "src"}
         print(f"{len(list(pictures.glob('*.png')))} pictures in {pictures} ({args.marked} of the marked bunny); "
-              f"ref {label} against this tree", flush=True)
+              f"ref {label} against this tree{' with ' + args.tree_args if args.tree_args else ''}", flush=True)
         seconds = {code: [] for code in codes}
         lines = {}
         for round_ in range(args.rounds):
             for code in (list(codes) if round_ % 2 == 0 else list(codes)[::-1]):
                 print(f"  {uptime()}", flush=True)
-                value, lines[code] = detect(codes[code], pictures)
+                value, lines[code] = detect(codes[code], pictures, args.tree_args.split() if code == "tree" else [])
                 seconds[code].append(value)
                 detected = sum(": detected" in line for line in lines[code])
                 print(f"  {code}: {value:.1f} s, {detected} of {len(lines[code])} detected", flush=True)

@@ -278,3 +278,26 @@ def test_eval_reads_a_folder_of_the_users_own_meshes(tmp_path, capsys):
     assert_one_line_error(*run(capsys, "eval", "--data", tmp_path)[::2])
     (tmp_path / "bunny.glb").unlink()
     assert_one_line_error(*run(capsys, "eval", "--data", tmp_path, "--attacks", "none")[::2])
+
+
+def test_detect_quick_registers_without_the_recut_and_the_retry(tmp_path, capsys, monkeypatch):
+    """`detect --quick` (a scan) hands `quick` to registration, which then neither cuts the object again
+    nor tries more views (tests/test_registration_speed.py); without it the full registration runs. The
+    picture of the mesh, without metadata, is read either way."""
+    import meshseal.reading.registration as registration
+
+    seen = []
+    full = registration.register_with_masks
+
+    def recording(*args, quick=False, **kwargs):
+        seen.append(quick)
+        return full(*args, quick=quick, **kwargs)
+
+    monkeypatch.setattr(registration, "register_with_masks", recording)
+    picture = tmp_path / "bunny.png"
+    assert run(capsys, "render", FIXTURES / "bunny.glb", "-o", picture, "--width", 128, "--height", 128)[0] == 0
+    Image.open(picture).convert("RGB").save(tmp_path / "bare.png")  # no camera in the file
+    for flags, expected in (([], False), (["--quick"], True)):
+        code, out, err = run(capsys, "detect", tmp_path / "bare.png", "--mesh", FIXTURES / "bunny.glb", "--json", *flags)
+        assert code == 1, err  # the unmarked bunny: read, no mark
+        assert json.loads(out)["camera"].startswith("registered") and seen[-1] is expected

@@ -277,3 +277,29 @@ def test_registration_on_the_outline_finds_the_view(monkeypatch):
     out = MeshRenderer()(mesh, camera, lights, 128, 128, (0.5, 0.5, 0.5))
     found = register(mesh, out.image[0], out.rgba[0, ..., 3] > 0.5, torch.tensor([0.5, 0.5, 0.5]))
     assert pose_error(mesh, camera, found.camera, 128, 128) < 0.5
+
+
+def test_a_quick_registration_neither_recuts_nor_retries_more_views(monkeypatch):
+    """`register_with_masks(quick=True)` (`meshseal detect --quick`, a scan): each guess registered once,
+    without `register`'s retry of more views, and no guess cut again from a registered silhouette; the
+    full registration does both where the texture does not confirm the camera."""
+    calls, cuts = [], []
+
+    def fake_register(mesh, picture, mask, background, fov_y=60.0, retry=True):
+        calls.append(retry)
+        return registration.Registration(None, (0, 0, 8, 8), 0.5, ())
+
+    monkeypatch.setattr(registration, "register", fake_register)
+    monkeypatch.setattr(registration, "texture_misfit", lambda *a, **k: 1.0 - 0.1 * len(calls))  # each fits better
+    monkeypatch.setattr(registration, "_rasterized", lambda mesh, camera, h, w: (None, torch.ones(1, h, w)))
+
+    def recut(silhouette):
+        cuts.append(silhouette.shape)
+        return torch.ones(8, 8, dtype=torch.bool)
+
+    picture, masks = torch.zeros(3, 8, 8), [torch.ones(8, 8, dtype=torch.bool), torch.ones(8, 8, dtype=torch.bool)]
+    registration.register_with_masks(None, picture, masks, torch.zeros(3), recut=recut)
+    assert calls[0] is True and len(cuts) >= 1 and len(calls) > len(masks)
+    calls.clear(), cuts.clear()
+    registration.register_with_masks(None, picture, masks, torch.zeros(3), recut=recut, quick=True)
+    assert calls == [False] * len(masks) and cuts == []

@@ -161,13 +161,15 @@ class Watermarker:
     # ------------------------------------------------------------ detect
     @torch.no_grad()
     def detect(self, images, mesh=None, *, key: str | bytes | None = None, expect=None, pool: bool = False,
-               register: bool = False, fov_y: float = 60.0):
+               register: bool = False, fov_y: float = 60.0, quick: bool = False):
         """Read pictures (paths, PIL images, arrays, tensors; one or a list) of a marked mesh.
 
         Informed methods (the default) need the original `mesh` (a Mesh, a path, or `original()`'s
         result): they take each picture's camera from its metadata (pictures from `meshseal render`)
         or, when it has none or `register` is set, find it by registration (assuming a vertical field
-        of view `fov_y`), then read the mark under it. Blind methods read the picture alone.
+        of view `fov_y`), then read the mark under it; `quick` registers without the recut and the retry
+        of more views (a scan where most pictures show other meshes: those read several times faster, and
+        a few pictures of the right mesh are missed). Blind methods read the picture alone.
 
         Under `key` (None: the public key) each result says whether a mark is there at the false-
         positive rate `payload.FPR` (`detected`, `p_value`) and what it says (`message`); `expect`
@@ -177,7 +179,8 @@ class Watermarker:
         """
         original = self.original(mesh) if self.informed else None
         single = not isinstance(images, (list, tuple))
-        readings = [self.look_again(self.read(image, original, register, fov_y), original, key, expect, search=not pool)
+        readings = [self.look_again(self.read(image, original, register, fov_y, quick=quick), original, key, expect,
+                                    search=not pool)
                     for image in ([images] if single else images)]
         if pool:
             return self.decision(readings, original, key, expect)
@@ -219,9 +222,10 @@ class Watermarker:
         prepare it once to detect many pictures of it."""
         return self.method.prepare(mesh)
 
-    def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None) -> Reading:
+    def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None,
+             quick: bool = False) -> Reading:
         """One picture's evidence, before any decision (`reading.read.Reader.read`)."""
-        return self.reader.read(image, original, register, fov_y, camera)
+        return self.reader.read(image, original, register, fov_y, camera, quick)
 
     def look_again(self, reading: Reading, original, key=None, expect=None, search: bool = True) -> Reading:
         """A registered reading looked at again where its mark is not found (`reading.second_look`)."""

@@ -61,6 +61,10 @@ def register(subparsers) -> None:
                         help="the original (unmarked) mesh file: informed models, like the default, need it")
     detect.add_argument("--register", action="store_true",
                         help="find the picture's camera by registration even if the picture carries one")
+    detect.add_argument("--quick", action="store_true",
+                        help="for a scan of many pictures, most of them of other meshes: register without "
+                             "trying other cuts of the object and more views where the first does not fit "
+                             "(such pictures read several times faster; a few pictures of the mesh are missed)")
     detect.add_argument("--fov", type=float, default=60.0,
                         help="the picture's vertical field of view in degrees, where registration starts "
                              "(default 60; it refines it where the texture says otherwise)")
@@ -458,7 +462,7 @@ def _readings(args, watermarker, original, paths: list[Path], workers: int | Non
     `workers` None: this process reads the pictures one after another until `pool_pays` says the
     rest would be read sooner by one process per core (at most MAX_WORKERS), each of them taking
     `start_cost` seconds to start (this process's own, model and original included)."""
-    task = (args.register, args.fov, _key(args), expect, args.pool)
+    task = (args.register, args.fov, _key(args), expect, args.pool, args.quick)
     if workers is None:
         seconds = []
         for done, path in enumerate(paths):
@@ -513,14 +517,15 @@ def _pooled(args, original, paths: list[Path], workers: int, task: tuple):
         pool.join()
 
 
-def _read_one(watermarker, original, path, register: bool, fov: float, key, expect, pool: bool):
+def _read_one(watermarker, original, path, register: bool, fov: float, key, expect, pool: bool, quick: bool = False):
     """A picture's Detection, as `Watermarker.detect` reads and decides it; with `pool`, its reading
     alone (the pool's evidence is added and decided once, `Watermarker.decision`)."""
     try:
         if pool:  # settled: no second look (a pool decides once), nothing but evidence to send back
-            reading = watermarker.read(path, original, register=register, fov_y=fov)
+            reading = watermarker.read(path, original, register=register, fov_y=fov, quick=quick)
             return path, watermarker.look_again(reading, original, search=False), None
-        return path, watermarker.detect(path, original, key=key, expect=expect, register=register, fov_y=fov), None
+        return path, watermarker.detect(path, original, key=key, expect=expect, register=register, fov_y=fov,
+                                        quick=quick), None
     except MeshsealError as error:
         return path, None, str(error)
 

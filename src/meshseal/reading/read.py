@@ -125,16 +125,19 @@ class Reader:
     def device(self) -> torch.device:
         return self.method.device
 
-    def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None) -> Reading:
+    def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None,
+             quick: bool = False) -> Reading:
         """One picture's evidence; `original` from `Method.prepare`, None for blind methods. The camera
         comes from `camera` (one `Cameras`, canonical frame: it overrides the rest), else the picture's
-        metadata (unless `register`), else registration assuming a vertical field of view `fov_y`."""
+        metadata (unless `register`), else registration assuming a vertical field of view `fov_y`
+        (`quick`: without its recut and retry, `registration.register_with_masks`)."""
         pixels, alpha, camera_text, codecs, luma = load_picture_and_codecs(image)
         revisit()  # one of many pictures: the thread count again from the jobs running now
         with reading_threads(pixels.shape[0] * pixels.shape[1]):
-            return self._read(image, pixels, alpha, camera_text, codecs, luma, original, register, fov_y, camera)
+            return self._read(image, pixels, alpha, camera_text, codecs, luma, original, register, fov_y, camera, quick)
 
-    def _read(self, image, pixels, alpha, camera_text, codecs, luma, original, register, fov_y, camera) -> Reading:
+    def _read(self, image, pixels, alpha, camera_text, codecs, luma, original, register, fov_y, camera,
+              quick=False) -> Reading:
         """`read` of the loaded picture (`load_picture_and_codecs`'s pixels, alpha, camera text, codecs)."""
         given = camera is not None
         from_metadata = original is not None and camera_text is not None and not register and not given
@@ -178,7 +181,7 @@ class Reader:
         picture, guesses, recut = enlarged(tensor[0].cpu(), guesses, recut, factor)
         with torch.enable_grad():
             found = register_with_masks(self.on_cpu(original), picture, guesses, background_tensor.cpu(),
-                                        fov_y=fov_y, recut=recut)
+                                        fov_y=fov_y, recut=recut, quick=quick)
         # a camera is the same for the picture at any size: its last hundredths of a pixel at the picture's own
         camera = polish(self.on_cpu(original), found.camera, tensor.cpu().clamp(0, 1),
                         torch.from_numpy(np.ascontiguousarray(mask))[None].float()).to(self.device)

@@ -1148,11 +1148,12 @@ def _refine_candidates(mesh: MeshBatch, outline: MeshBatch, cameras: Cameras, le
 
 def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, background: torch.Tensor,
              candidates: int = 400, keep: int = 8, shading_weight: float = 0.3, fov_y: float = FOV,
-             texture_refine: bool = True) -> Registration:
+             texture_refine: bool = True, retry: bool = True) -> Registration:
     """Find the camera of `picture` (3, H, W) in [0, 1] of `mesh` (one mesh in the canonical frame);
     `mask` (H, W) marks the object's pixels; `fov_y` is the picture's vertical field of view as first
     assumed (the texture stage refines it where the texture says otherwise; the principal point is
-    assumed at the centre). See the module docstring."""
+    assumed at the centre). `retry`: where the texture does not confirm the camera, try RETRY_KEEP more
+    views (step 4); off for a quick scan (`register_with_masks`' `quick`). See the module docstring."""
     target, target_mask, box, inside = frame_picture(picture, mask, SEARCH_SIZE, background)
     levels = _targets(target, target_mask, inside)
     fov, principal = crop_intrinsics(picture.shape[-2], picture.shape[-1], box[0], fov_y)
@@ -1214,7 +1215,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
                                          on_texture) for i in others[:ALTERNATIVES])
     else:
         alternatives = tuple(Alternative(refined[[i]], on_silhouettes, on_texture) for i in others[:ALTERNATIVES])
-    if texture_refine and RETRY_KEEP:
+    if texture_refine and RETRY_KEEP and retry:
         # 4. A registration the texture does not confirm tries more views, nearer each other: a view
         # a few degrees from the truth can rank far down the first score and lose its place among
         # the first few to a higher-scored one further off.
@@ -1232,7 +1233,7 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
 
 
 def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,
-                        fov_y: float = FOV, recut=None) -> Registration:
+                        fov_y: float = FOV, recut=None, quick: bool = False) -> Registration:
     """`register` with each of several guesses of the object's pixels (H, W; after the first, also a
     function making one, or None, called only when the search reaches it) in turn (e.g. a busy
     background's colour-guided cut, then the plain-background threshold, when they disagree), keeping
@@ -1244,9 +1245,11 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
     the guess (IoU under RECUT_BELOW_IOU: on a plain background whose frame cuts the object off, a
     registration can be right yet over ACCEPT_MISFIT), up to RECUT_ROUNDS in a row while they fit
     better. A new cut much like its guess is registered all the same: registration on a slightly
-    different mask can land on a better view."""
-    first = register(mesh, picture, masks[0], background, fov_y=fov_y)
-    if len(masks) == 1 and (recut is None or first.iou >= RECUT_BELOW_IOU):
+    different mask can land on a better view. `quick` (a scan of many pictures, most of them of other
+    meshes, where those take most of the time): no recut and no retry of more views (`register`), at
+    the cost of the pictures of the right mesh only they register."""
+    first = register(mesh, picture, masks[0], background, fov_y=fov_y, retry=not quick)
+    if len(masks) == 1 and (recut is None or quick or first.iou >= RECUT_BELOW_IOU):
         return first  # nothing to compare it with: its misfit is not needed
     everywhere = torch.ones_like(masks[0][None], dtype=picture.dtype)
     best, best_misfit, cut_from = None, math.inf, None
@@ -1255,7 +1258,7 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
         """Register on `mask` (unless `found` already is), keep it if it fits best; whether it fit
         better than the best before."""
         nonlocal best, best_misfit
-        found = found if found is not None else register(mesh, picture, mask, background, fov_y=fov_y)
+        found = found if found is not None else register(mesh, picture, mask, background, fov_y=fov_y, retry=not quick)
         misfit = texture_misfit(mesh, found.camera, picture[None].clamp(0, 1), everywhere, PICK_SIGMAS)
         if best is None or misfit < best_misfit:
             best, best_misfit = found, misfit
@@ -1268,7 +1271,7 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
             if mask is None:
                 continue
         attempt(mask, first if index == 0 else None)
-        for _ in range(RECUT_ROUNDS if recut is not None else 0):
+        for _ in range(RECUT_ROUNDS if recut is not None and not quick else 0):
             # `best` changes only when a guess fits better, so the last camera cut from is the only repeat.
             if best_misfit < ACCEPT_MISFIT or best.iou >= RECUT_BELOW_IOU or best is cut_from:
                 break
