@@ -174,7 +174,10 @@ class Reader:
         if original is None:
             box = tuple(float(v) for v in boxes_from_mask(torch.from_numpy(mask)[None])[0])
             return Reading(self.method.blind_evidence(pixels, mask, background_tensor), box, None, None)
+        from ..render import compiled
         from .registration import polish, register_with_masks
+
+        compiled.load()  # registration renders thousands of views: the compiled kernels pay at once
 
         guesses, recut = self._object_guesses(pixels, mask, alpha, original)
         factor = registration_factor(mask)
