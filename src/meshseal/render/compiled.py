@@ -9,7 +9,8 @@ Torch pays per operation, so those paths are several times slower per job; they 
 at most SMALL_JOB values, and only until the seconds spent in them reach LOAD_SECONDS: then the
 kernels are loaded, as a renter buys once the rent paid equals the price (never more than about
 twice what the better choice in hindsight costs). A command that renders a few pictures never loads
-numba; registration, training and batches load it within their first second.
+numba; registration, which renders thousands of views, loads it at once (`load`), and training and
+batches within their first second.
 """
 
 from __future__ import annotations
