@@ -42,7 +42,7 @@ READ_ONE_THREAD_BELOW = 1024 * 1024  # pixels: a picture smaller than this is re
 _COUNTS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
 _PASSIVE = {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
 REVISIT_SECONDS = 1.0  # a long command looks at the other jobs again at most this often (`revisit`)
-_looks: list[float] = []  # `revisit`'s last few counts of other jobs' running threads
+_looks: list[int] = []  # `revisit`'s last few counts of other jobs' running threads
 _next_look = 0.0
 _pinned = 0  # `reading_threads` blocks holding one thread now
 
@@ -139,6 +139,7 @@ def reading_threads(pixels: int):
     enough to share.
     Several pictures are read in parallel by processes (`meshseal detect FOLDER`'s pool), one thread
     each."""
+    global _pinned
     given = _GIVEN if _CONFIGURED else requested()
     if pixels >= READ_ONE_THREAD_BELOW or given is not None or "torch" not in sys.modules:
         yield
@@ -151,7 +152,6 @@ def reading_threads(pixels: int):
     if before <= 1 and numba_before <= 1:
         yield
         return
-    global _pinned
     torch.set_num_threads(1)
     if numba is not None:
         numba.set_num_threads(1)
