@@ -89,6 +89,17 @@ def test_torch_paths_are_rented_until_they_cost_a_load(monkeypatch):
     assert not compiled.spare(1000)
 
 
+def test_a_command_with_several_pictures_loads_the_kernels_first(monkeypatch):
+    """`for_pictures`: from PICTURES_TO_LOAD pictures on, the kernels load before the first reading
+    (the rent rule would load them only after several slower ones); fewer keep the torch paths."""
+    loads = []
+    monkeypatch.setattr(compiled, "load", lambda: loads.append(1))
+    compiled.for_pictures(compiled.PICTURES_TO_LOAD - 1)
+    assert loads == []
+    compiled.for_pictures(compiled.PICTURES_TO_LOAD)
+    assert loads == [1]
+
+
 PROBE = """
 import json, sys
 if sys.argv[3] == "kernels":

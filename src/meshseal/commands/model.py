@@ -463,6 +463,10 @@ def _readings(args, watermarker, original, paths: list[Path], workers: int | Non
     rest would be read sooner by one process per core (at most MAX_WORKERS), each of them taking
     `start_cost` seconds to start (this process's own, model and original included)."""
     task = (args.register, args.fov, _key(args), expect, args.pool, args.quick)
+    if workers is None or workers <= 1:
+        from ..render import compiled
+
+        compiled.for_pictures(len(paths))  # several pictures: the renderer's compiled kernels pay at once
     if workers is None:
         seconds = []
         for done, path in enumerate(paths):
@@ -538,6 +542,9 @@ def _worker_start(model, mesh) -> None:
 
     configure(worker=True)
     from ..api import load
+    from ..render import compiled
+
+    compiled.load()  # a worker is started for many pictures: the compiled kernels pay at once
 
     watermarker = load(model)
     _WORKER.update(watermarker=watermarker, original=None if mesh is None else watermarker.original(mesh))

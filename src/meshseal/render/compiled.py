@@ -19,6 +19,7 @@ import time
 from contextlib import contextmanager
 
 LOAD_SECONDS = 0.4  # about what loading the kernels costs a process (numba's import and first call)
+PICTURES_TO_LOAD = 4  # `for_pictures`: a command reading this many pictures or more loads the kernels first
 SMALL_JOB = 1 << 21  # values (pixels, times planes for a blur) of a job that may run in torch while they are not
 
 _KERNELS: list = []  # every `_Lazy` made, in the order their modules defined them
@@ -88,6 +89,15 @@ def load() -> None:
         from .. import threads
 
         threads.numba_loaded()
+
+
+def for_pictures(count: int) -> None:
+    """Load the kernels at once where this process is about to read `count` pictures and their torch
+    paths would take longer than a load: a camera-known picture spends about a third of LOAD_SECONDS
+    there, so from PICTURES_TO_LOAD on (a command knows how many pictures it has; the rent rule above
+    does not, and would load only after several slower readings)."""
+    if count >= PICTURES_TO_LOAD:
+        load()
 
 
 def spare(size: int) -> bool:
