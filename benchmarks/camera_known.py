@@ -10,7 +10,9 @@ child process whose code comes first on PYTHONPATH (the reference exported with 
   `--folder-copies` times (default 8: hard links), default workers (this process until one per core
   would read the rest sooner): lines per second over the last half of the lines (a pool, where one
   starts, is running by then); the round's line also gives the seconds from the start to the last line;
-- `first_line_s`: from starting `meshseal detect PICTURE --mesh MESH` to its first result line.
+- `first_line_s`: from starting `meshseal detect PICTURE --mesh MESH` to its first result line, the
+  mesh met before (the load cache, `meshseal.mesh.cache`, holds it: `meshseal embed` put it there);
+- `first_line_cold_s`: the same with an empty load cache (a mesh this machine never loaded: trimesh).
 
 The pictures: the bunny fixture marked (`meshseal embed --message ab42 --views 0`) and rendered from
 `--pictures` seeded views (default 64) at 256^2, each with its camera in the PNG. The load average is
@@ -18,7 +20,7 @@ printed before each round; other jobs on the machine slow both codes alike only 
 time, so compare the ratios of a round, not figures across runs.
 
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 python benchmarks/camera_known.py [--ref COMMIT] [--rounds 2]
-        [--pictures 64] [--folder-copies 8] [--figures picture,folder,first]
+        [--pictures 64] [--folder-copies 8] [--figures picture,folder,first,cold]
 
 Last line: `picture_ms=... folder_per_s=... first_line_s=...` for this tree and `..._xref=` its ratio
 to the reference (medians over rounds), `..._best=` and `..._best_xref=` the same for each code's best
@@ -89,8 +91,10 @@ def folder_rate(source: Path, folder: Path) -> tuple[float, float]:
     return (len(arrivals) - 1 - middle) / (arrivals[-1] - arrivals[middle]), arrivals[-1]
 
 
-def first_line(source: Path, picture: Path) -> float:
+def first_line(source: Path, picture: Path, cache: Path) -> float:
+    """Seconds from the start to the first line, with the load cache (`mesh.cache`) in `cache`."""
     command, env = cli(source)
+    env["MESHSEAL_CACHE"] = str(cache)
     start = time.perf_counter()
     run = subprocess.Popen(command + ["detect", str(picture), "--mesh", str(BUNNY)], env=env,
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
@@ -116,7 +120,7 @@ def main() -> None:
     parser.add_argument("--ref", default="HEAD~1")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--pictures", type=int, default=64)
-    parser.add_argument("--figures", default="picture,folder,first")
+    parser.add_argument("--figures", default="picture,folder,first,cold")
     parser.add_argument("--folder-copies", type=int, default=8)
     parser.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -133,6 +137,9 @@ def main() -> None:
         subprocess.run(["tar", "-x", "-C", str(ref_root)], input=archive, check=True)
         codes = {"ref": ref_root / "src", "tree": ROOT / "src"}
         command, env = cli(codes["tree"])
+        cache = work / "cache"  # the load cache: `embed` below fills it with the bunny, as it does for a user
+        os.environ["MESHSEAL_CACHE"] = str(cache)
+        env["MESHSEAL_CACHE"] = str(cache)
         marked, folder = work / "marked.glb", work / "pictures"
         subprocess.run(command + ["embed", str(BUNNY), "-o", str(marked), "--message", "ab42", "--views", "0"],
                        env=env, check=True, capture_output=True)
@@ -149,7 +156,7 @@ def main() -> None:
               f"against this tree; {args.pictures} pictures of the marked bunny at 256^2; "
               f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')} NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS')}")
         for code, source in codes.items():  # warm: numba compiles each code's kernels into its cache once
-            first_line(source, picture)
+            first_line(source, picture, cache)
         values = {(name, code): [] for name in figures for code in codes}
         loads, results = [], {}
         for round_ in range(args.rounds):
@@ -165,12 +172,16 @@ def main() -> None:
                     elif name == "folder":
                         value, seconds = folder_rate(source, many)
                         total = f"  ({args.pictures * args.folder_copies} pictures in {seconds:.2f} s)"
-                    else:
-                        value = statistics.median(first_line(source, picture) for _ in range(3))
+                    elif name == "first":
+                        value = statistics.median(first_line(source, picture, cache) for _ in range(3))
+                    else:  # cold: a mesh this machine has not loaded before (an empty load cache each time)
+                        value = statistics.median(first_line(source, picture, Path(tempfile.mkdtemp(dir=work)))
+                                                  for _ in range(3))
                     values[(name, code)].append(value)
                     print(f"  {name:8s} {code:4s} {value:9.2f}{total}  (load {load_average():.2f})", flush=True)
     units = {"picture": ("picture_ms", "ms, median a picture"), "folder": ("folder_per_s", "pictures/s"),
-             "first": ("first_line_s", "s to the first line")}
+             "first": ("first_line_s", "s to the first line"),
+             "cold": ("first_line_cold_s", "s to the first line, a mesh not met before")}
     line = []
     for name in figures:
         ref, tree = (statistics.median(values[(name, code)]) for code in ("ref", "tree"))

@@ -1,5 +1,7 @@
 """Shared fixtures."""
 
+import os
+
 import pytest
 
 import meshseal.threads
@@ -7,6 +9,18 @@ import meshseal.threads
 # The suite's in-process commands apply the thread policy (`configure`); its count is not revisited
 # mid-suite (`threads.revisit`, tested in subprocesses), so no result depends on the load of the moment.
 meshseal.threads.REVISIT_SECONDS = float("inf")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def mesh_cache_folder(tmp_path_factory):
+    """The suite's load cache (`mesh.cache`) in a folder of its own, never the user's (subprocesses too)."""
+    before = os.environ.get("MESHSEAL_CACHE")
+    os.environ["MESHSEAL_CACHE"] = str(tmp_path_factory.mktemp("mesh_cache"))
+    yield os.environ["MESHSEAL_CACHE"]
+    if before is None:
+        del os.environ["MESHSEAL_CACHE"]
+    else:
+        os.environ["MESHSEAL_CACHE"] = before
 
 
 @pytest.fixture(scope="session")

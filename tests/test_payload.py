@@ -465,3 +465,27 @@ def test_the_table_decoder_answers_as_galois_does(n_bits):
             assert errors < 0
         else:
             assert errors == expected_errors and np.array_equal(got, np.asarray(expected, dtype=np.uint8))
+
+
+def test_the_tails_agree_with_scipy():
+    """payload's distribution tails (torch, float64) are scipy.special's to a relative 1e-12, far
+    into the tails the p-values reach."""
+    from scipy import special
+
+    from meshseal import payload
+
+    x = np.concatenate([np.linspace(-37.0, 37.0, 4001), [-8.5, 0.0, 3.25]])
+    assert np.allclose(payload._normal_below(x), special.ndtr(x), rtol=1e-12, atol=0)
+    assert isinstance(payload._normal_below(-3.0), float)
+    assert payload._normal_below(-30.0) == pytest.approx(special.ndtr(-30.0), rel=1e-12)
+    y = np.linspace(-3.0, 500.0, 2001)
+    assert np.allclose(payload._erfcx(y), special.erfcx(y), rtol=1e-14, atol=0)
+    statistic = np.linspace(10.0, 2000.0, 1001)
+    ours, theirs = payload._chi_square_above(64, statistic), special.chdtrc(64, statistic)
+    small = theirs < 1e-3  # where a decision lies: the same to rounding (a few 1e-10 apart around the mean)
+    assert small.sum() > 500
+    assert np.allclose(ours[small], theirs[small], rtol=1e-12, atol=1e-300)
+    assert np.allclose(ours, theirs, rtol=1e-8, atol=0)
+    for k in (0, 1, 5, 30):
+        for mean in (0.05, 1.0, 7.5, 40.0):
+            assert payload._poisson_above(k, mean) == pytest.approx(special.pdtrc(k, mean), rel=1e-8)

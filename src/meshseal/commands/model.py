@@ -224,7 +224,7 @@ def run_embed(args) -> int:
     from ..mesh.io import check_output
 
     watermarker = load(args.model)
-    mesh = load_mesh(args.input, up_axis=args.up)
+    mesh = load_mesh(args.input, up_axis=args.up, cache="fill")  # for the detections after it
     check_output(args.output, mesh.source.input_files)
     if args.preview is not None:
         if args.views == 0:

@@ -163,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     fmt = FORMATS.get(output.suffix.lower())
     if fmt is None:
         raise MeshsealError(f"{output}: the output must be a .png or .jpg file")
-    mesh = load(args.mesh, up_axis=args.up)
+    mesh = load(args.mesh, up_axis=args.up, cache=True)
     paths = output_paths(output, len(args.camera) if args.camera else args.views)
     protected = set(mesh.source.input_files) if mesh.source is not None else set()
     protected.add(Path(args.mesh).resolve())

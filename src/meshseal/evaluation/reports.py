@@ -62,7 +62,7 @@ def write_preview(path: Path, original, marked, renders) -> None:
     import torch
     from PIL import Image, ImageDraw, ImageFont
 
-    from ..mesh.io import atomic_write
+    from ..mesh.files import atomic_write
     from ..reading.pictures import image_bytes
     from ..models.spread import resampled_like
 

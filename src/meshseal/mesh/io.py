@@ -17,7 +17,6 @@ import os
 import re
 import stat
 import sys
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +26,8 @@ import torch
 from PIL import Image
 
 from ..errors import MeshError
+from . import cache as mesh_cache
+from .files import atomic_write, atomic_write_files, file_mode  # noqa: F401 - io's API since before files.py
 from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, Material, Mesh
 from .preprocess import vertex_normals
 from .validate import (check_glb, check_gltf, check_images, check_obj, check_off, check_ply, check_stl,
@@ -156,14 +157,16 @@ def _material(visual, name: str) -> Material:
     return result
 
 
-def load(path, up_axis: str | None = None) -> Mesh:
+def load(path, up_axis: str | None = None, cache: bool | str = False) -> Mesh:
     """Load a mesh file (OBJ+MTL+images, GLB/glTF, PLY, OFF, STL) as one concatenated `Mesh`.
 
     Raises MeshError with a one-line message for anything unusable. A texture file that is missing
     is a warning: the material falls back to its flat diffuse colour.
+    `cache` (`mesh.cache`): True for a caller that only reads the mesh: the same input loaded before
+    comes from the cache, without trimesh (its source then has no scene: it cannot be saved), and a
+    first load fills it; "fill" loads with trimesh as always and fills the cache for later readers.
+    A glTF, or a GLB that names files outside itself, is not cached.
     """
-    import trimesh
-
     path = Path(path)
     file_type = _file_type(path)
     data = read_regular(path, "mesh file")
@@ -185,6 +188,17 @@ def load(path, up_axis: str | None = None) -> Mesh:
             if image is None:
                 _warn(f"{name} not found; using the flat diffuse colour")
     check_images(images)
+    entry = None
+    if cache and file_type != "gltf" and not (file_type == "glb" and mesh_cache.glb_external(data)):
+        entry = mesh_cache.key(path, data, file_type, up_axis or UP_AXIS[file_type], input_files)
+        stored = mesh_cache.read(entry) if cache is True else None
+        if stored is not None:
+            try:
+                return _from_cache(*stored, path, file_type, input_files)
+            except Exception:  # noqa: BLE001 - an entry of another layout: loaded afresh below
+                pass
+    import trimesh
+
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -201,7 +215,45 @@ def load(path, up_axis: str | None = None) -> Mesh:
     if file_type == "gltf":
         input_files |= {resolved(p) for p in path.parent.iterdir() if p.suffix.lower() in
                         {".bin", ".png", ".jpg", ".jpeg", ".webp"}}
-    return _from_scene(scene, path, file_type, input_files, up_axis or UP_AXIS[file_type])
+    mesh = _from_scene(scene, path, file_type, input_files, up_axis or UP_AXIS[file_type])
+    if entry is not None:
+        mesh_cache.write(entry, *_for_cache(mesh))
+    return mesh
+
+
+def _for_cache(mesh: Mesh) -> tuple[dict, dict]:
+    """A loaded mesh as a cache entry (`mesh.cache`): a JSON header and tensors."""
+    tensors = {"positions": mesh.positions, "normals": mesh.normals, "faces": mesh.faces,
+               "face_material": mesh.face_material}
+    if mesh.uvs is not None:
+        tensors["uvs"] = mesh.uvs
+    materials = []
+    for number, material in enumerate(mesh.materials):
+        materials.append({"name": material.name, "shininess": material.shininess})
+        for field in ("ambient", "diffuse", "specular"):
+            tensors[f"{field}{number}"] = getattr(material, field)
+        if material.texture is not None:
+            tensors[f"texture{number}"] = mesh_cache.eight_bit(material.texture)
+    parts = [{"node": p.node, "geometry": p.geometry, "vertices": [p.vertices.start, p.vertices.stop],
+              "faces": [p.faces.start, p.faces.stop], "transform": np.asarray(p.transform).tolist()}
+             for p in mesh.source.parts]
+    return {"materials": materials, "up_axis": mesh.up_axis, "parts": parts}, tensors
+
+
+def _from_cache(header: dict, tensors: dict, path: Path, file_type: str, input_files: set[Path]) -> Mesh:
+    """`_for_cache`'s entry as the Mesh it was made from; its source has the parts and no scene."""
+    materials = [Material(name=fields["name"], texture=mesh_cache.from_eight_bit(tensors[f"texture{number}"])
+                          if f"texture{number}" in tensors else None,
+                          ambient=tensors[f"ambient{number}"], diffuse=tensors[f"diffuse{number}"],
+                          specular=tensors[f"specular{number}"], shininess=float(fields["shininess"]))
+                 for number, fields in enumerate(header["materials"])]
+    mesh = Mesh(positions=tensors["positions"], normals=tensors["normals"], faces=tensors["faces"],
+                uvs=tensors.get("uvs"), face_material=tensors["face_material"], materials=materials,
+                up_axis=header["up_axis"])
+    parts = [Part(p["node"], p["geometry"], slice(*p["vertices"]), slice(*p["faces"]),
+                  np.asarray(p["transform"], dtype=np.float64)) for p in header["parts"]]
+    mesh.source = Source(path, file_type, None, parts, mesh.positions.clone(), input_files)
+    return mesh
 
 
 def _from_scene(scene, path: Path, file_type: str, input_files: set[Path], up_axis: str) -> Mesh:
@@ -562,61 +614,6 @@ def check_output(path: Path, inputs=()) -> None:
         raise MeshError(f"{folder}: folder is not writable (permission denied)")
 
 
-def file_mode() -> int:
-    """The permissions a plainly created file gets: 0666 less the process's umask (a temporary file
-    from `tempfile.mkstemp` is 0600 whatever the umask; outputs renamed from one are set to this)."""
-    try:
-        with open("/proc/self/status", encoding="ascii") as status:
-            for line in status:
-                if line.startswith("Umask:"):
-                    return 0o666 & ~int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    umask = os.umask(0o022)  # no /proc: read it by setting it (and put it back at once)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
-def atomic_write_files(files: dict[Path, bytes]) -> None:
-    """Write several files all or nothing (as far as a file system allows): each goes to a temporary
-    file in its folder first and is renamed into place only once all are written, with the permissions
-    the umask gives a new file (`file_mode`). Missing folders are created, and removed again if writing
-    fails; no temporary file is left behind."""
-    created, temps, current = [], {}, None
-    mode = file_mode()
-    try:
-        for current in files:
-            missing = [folder for folder in [current.parent, *current.parent.parents] if not folder.exists()]
-            for folder in reversed(missing):
-                folder.mkdir()
-                created.append(folder)
-        for current, data in files.items():
-            handle, temps[current] = tempfile.mkstemp(dir=current.parent, prefix=f".{current.name}.", suffix=".tmp")
-            os.fchmod(handle, mode)
-            with os.fdopen(handle, "wb") as stream:
-                stream.write(data)
-        for current, temp in temps.items():
-            os.replace(temp, current)
-    except BaseException as error:
-        for temp in temps.values():
-            if os.path.exists(temp):
-                os.unlink(temp)
-        for folder in reversed(created):
-            try:
-                folder.rmdir()
-            except OSError:
-                pass
-        if isinstance(error, OSError):
-            raise MeshError(f"{current}: cannot write: {error.strerror or error}") from None
-        raise
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file in the same folder and a rename (see
-    `atomic_write_files`)."""
-    atomic_write_files({Path(path): data})
-
-
 def save(mesh: Mesh, path) -> list[Path]:
     """Save `mesh` in the format of `path`; returns the files written.
 
@@ -629,6 +626,9 @@ def save(mesh: Mesh, path) -> list[Path]:
     file_type = _file_type(path)
     source: Source | None = mesh.source
     if source is not None:
+        if source.scene is None:
+            raise MeshError(f"{source.path}: this mesh came from the load cache, which keeps no file structure to "
+                            "write back into: load it with `cache=False` to save it")
         if source.file_type != file_type and not (source.file_type in ("glb", "gltf") and file_type in ("glb", "gltf")):
             raise MeshError(f"{path}: output format must match the input's ({source.path.suffix})")
         scene = _write_back(mesh)

@@ -262,7 +262,7 @@ def informed_original(method: Method, mesh):
     if mesh is None:
         raise MeshsealError("this model reads pictures with the original mesh: give it (--mesh FILE)")
     if isinstance(mesh, (str, Path)):
-        mesh = load_mesh(mesh)
+        mesh = load_mesh(mesh, cache=True)  # read only: the load cache skips trimesh for a mesh met before
     if mesh.uvs is None or all(m.texture is None for m in mesh.materials):
         raise MeshsealError("the original mesh has no texture with UVs, so it cannot carry this model's mark")
     return MeshBatch.from_mesh(normalize(to_z_up(replace(method.layout(mesh), source=None))).to(method.device))

@@ -19,7 +19,7 @@ def save_tensors(tensors: dict[str, torch.Tensor], path, metadata: dict[str, str
     """Atomic safetensors write, with the permissions the umask gives a new file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    from ..mesh.io import file_mode
+    from ..mesh.files import file_mode
 
     handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(handle)
