@@ -1,21 +1,20 @@
 """A cache of loaded meshes, so that a command reading pictures of a mesh it has met before skips trimesh.
 
-Loading a mesh through trimesh costs its import (a third of a second, with scipy and networkx) before
-any file is read; a command that only reads the mesh (`meshseal detect`, `meshseal render`) needs the
-arrays alone. `io.load(path, cache=True)` keeps them here after a first load and takes them from here
-after that, for the same input: the key is the SHA-256 of the mesh file and of every file its load
-reads (an OBJ's MTL and textures), the up axis asked for, the loader's own source files and the
-versions of trimesh, numpy and Pillow, so a changed texture, loader or library is a new entry. The
-file's own checks (`validate`) run either way, with their errors and warnings. A mesh from the cache
-has no trimesh scene: it cannot be saved (`io.save` says so); `meshseal embed`, which saves, loads
-with trimesh and fills the cache for the commands after it (`io.load(path, cache="fill")`).
+Loading a mesh through trimesh costs its import (with scipy's and networkx's) before any file is read; a
+command that only reads the mesh (`meshseal detect`, `meshseal render`) needs the arrays alone.
+`io.load(path, cache=True)` keeps them here after a first load and takes them from here after that, for
+the same input: the key is the SHA-256 of the mesh file and of every file its load reads (an OBJ's MTL
+and textures), the up axis asked for, the loader's own source files and the versions of trimesh, numpy
+and Pillow, so a changed texture, loader or library is a new entry. The file's own checks (`validate`)
+run either way, with their errors and warnings. A mesh from the cache has no trimesh scene: it cannot be
+saved (`io.save` says so); `meshseal embed`, which saves, loads with trimesh and fills the cache for the
+commands after it (`io.load(path, cache="fill")`).
 
-Entries are safetensors files (no pickle): the mesh's tensors, its textures as 8-bit where they came
-from 8-bit images (the same floats back), and a JSON header for the rest. Where: `MESHSEAL_CACHE` (a
-folder, or `off`), else `$XDG_CACHE_HOME/meshseal/meshes`, else `~/.cache/meshseal/meshes`; entries
-are written atomically with the user's umask, and the least recently used go once the folder holds
-over `LIMIT_BYTES`. A cache that cannot be read or written is passed over silently: it only ever saves
-time.
+Entries are safetensors files (no pickle): the mesh's tensors, its textures as 8-bit where they came from
+8-bit images (the same floats back), and a JSON header for the rest. Where: `MESHSEAL_CACHE` (a folder,
+or `off`), else `$XDG_CACHE_HOME/meshseal/meshes`, else `~/.cache/meshseal/meshes`; entries are written
+atomically with the user's umask, and the least recently used go once the folder holds over
+`LIMIT_BYTES`. A cache that cannot be read or written is passed over silently: it only ever saves time.
 """
 
 from __future__ import annotations
