@@ -182,19 +182,14 @@ class Reader:
         guesses, recut = self._object_guesses(pixels, mask, alpha, original)
         factor = registration_factor(mask)
         picture, guesses, recut = enlarged(tensor[0].cpu(), guesses, recut, factor)
-        from . import registration
-
-        registration._CODEC[:] = [(tuple(picture.shape[-2:]), codecs[0], (0, 0))] if (
-            registration.TEXTURE_CODEC and factor == 1 and codecs) else []
         with torch.enable_grad():
             found = register_with_masks(self.on_cpu(original), picture, guesses, background_tensor.cpu(),
                                         fov_y=fov_y, recut=recut, quick=quick)
-        registration._CODEC[:] = []
-        # one tensor for the polish, this reading and the second look: the codec its file names, or found once
-        seen = self._expect_codecs(tensor.clamp(0, 1), codecs, luma)
         # a camera is the same for the picture at any size: its last hundredths of a pixel at the picture's own
-        camera = polish(self.on_cpu(original), found.camera, seen.cpu(),
+        camera = polish(self.on_cpu(original), found.camera, tensor.cpu().clamp(0, 1),
                         torch.from_numpy(np.ascontiguousarray(mask))[None].float()).to(self.device)
+        # one tensor for this reading and the second look: the codec found once
+        seen = self._expect_codecs(tensor.clamp(0, 1), codecs, luma)
         evidence = self.method.evidence(original, seen, camera)
         second_look = (seen.cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
         return Reading(evidence, tuple(float(v) / factor for v in found.box), "registered", found.iou, camera,

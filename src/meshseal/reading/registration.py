@@ -727,16 +727,12 @@ def _band_problem(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask:
     band = _band_pass(inside, sigma)
     target = band(picture).permute(0, 2, 3, 1)[inside].reshape(-1)
     renderer = MeshRenderer(blend="hard")
-    coded = None
-    if _CODEC and _CODEC[0][0] == (height, width):
-        coded = _frame_codec(picture, _CODEC[0][1], _CODEC[0][2])
 
     def residual(moved: Cameras, with_image: bool = False):
         """(B, M) for B cameras: every camera of `moved` renders in one batch; with `with_image`, also
         the band-passed renders (B, 3, H, W) and their rasterization."""
         rendered = renderer(fit.relit, moved, fit.lights[[0] * len(moved)], height, width)
-        image = rendered.image if coded is None else coded(rendered.image, rendered.rgba[..., 3] > 0.5)
-        banded = band(image)
+        banded = band(rendered.image)
         values = banded.permute(0, 2, 3, 1)[:, inside[0]].reshape(len(moved), -1) - target
         return (values, banded, rendered.fragments) if with_image else values
 
@@ -919,67 +915,6 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
         return _from_window(window, centre, camera)
 
 
-POLISH_CODEC = True  # EXPERIMENT (reverted): the polish compares the picture with its codec's copy of the render
-TEXTURE_CODEC = True  # EXPERIMENT (reverted): so do the texture stage's levels at the picture's own size
-_CODEC: list = []  # ((H, W), codec, phase) of the picture being registered (set by `Reader._read`)
-
-
-def _frame_codec(picture: torch.Tensor, codec, phase):
-    """Renders (B, 3, H, W) pasted into `picture` (1, 3, H, W) where covered, through `codec` and back."""
-    import numpy as np
-
-    from . import compression
-
-    canvas = (picture[0].permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-
-    def coded(images: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:
-        out = []
-        for index in range(images.shape[0]):
-            frame = canvas.copy()
-            where = covered[index].numpy()
-            frame[where] = (images[index].permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy()[where]
-            back = compression._round_trip_at(frame, codec, phase)
-            out.append(torch.from_numpy(back.astype(np.float32) / 255.0).permute(2, 0, 1))
-        return torch.stack(out).to(images)
-
-    return coded
-
-
-def _codec_of_window(picture: torch.Tensor, window: _Window):
-    """Where the codec that saved `picture` is known (`compression`), renders of `window` (B, 3, side,
-    side) as that codec leaves them pasted into the picture at the window's object pixels; else None."""
-    import numpy as np
-
-    from . import compression
-
-    known = compression._known(picture)
-    if not known or not known[0]:
-        return None
-    codec = known[0][0]
-    phases = compression._known(picture, compression._PHASES)
-    phase = phases[0] if phases else (0, 0)
-    height, width = picture.shape[-2:]
-    cx, cy, half = window.box
-    left, top, side = round(cx - half), round(cy - half), window.side
-    canvas = (picture[0].permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-    rows = slice(max(top, 0), min(top + side, height))
-    columns = slice(max(left, 0), min(left + side, width))
-    inner = (slice(rows.start - top, rows.stop - top), slice(columns.start - left, columns.stop - left))
-    seen = window.seen[inner].numpy()
-
-    def coded(images: torch.Tensor) -> torch.Tensor:
-        out = images.clone()
-        for index in range(images.shape[0]):
-            frame = canvas.copy()
-            part = (images[index].permute(1, 2, 0)[inner].clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-            frame[rows, columns][seen] = part[seen]
-            back = compression._round_trip_at(frame, codec, phase)[rows, columns]
-            out[index, :, inner[0], inner[1]] = torch.from_numpy(back.astype(np.float32) / 255.0).permute(2, 0, 1).to(out)
-        return out
-
-    return coded
-
-
 def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
     """The registered `camera` of `picture` (1, 3, H, W), object pixels `mask` (1, H, W), brought the last
     hundredths of a pixel to where the relit original, rendered as the reading renders it (antialiased,
@@ -1015,7 +950,6 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
         first = _object_window(camera, picture, mask > 0.5, POLISH_WINDOW)
         crop, side = first.image[None], first.side
         crop_mask = first.seen[None].to(picture.dtype)
-        through_codec = _codec_of_window(picture, first) if POLISH_CODEC else None
         footprint = None  # chosen in the first round
         for _ in range(POLISH_ROUNDS):
             window = replace(first, camera=first.seen_from(camera))
@@ -1026,7 +960,7 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
             band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(inside, 0.0, POLISH_HIGHPASS)
             target = band(crop)[0].permute(1, 2, 0)[inside[0]].reshape(-1).double()
 
-            def rendered(deltas: torch.Tensor, factor: float | None = None, coded: bool = False) -> torch.Tensor:
+            def rendered(deltas: torch.Tensor, factor: float | None = None) -> torch.Tensor:
                 factor = footprint if factor is None else factor
                 lights = fit.lights[[0] * len(deltas)]
                 size = max(8, round(side / factor))
@@ -1035,8 +969,6 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 if size != side:  # as an image tool resizes (bicubic, antialiased when it shrinks)
                     image = F.interpolate(image, size=(side, side), mode="bicubic", antialias=size > side,
                                           align_corners=False)
-                if coded and through_codec is not None:
-                    image = through_codec(image)
                 return band(image).permute(0, 2, 3, 1)[:, inside[0]].reshape(len(deltas), -1).double()
 
             at_start = None  # the start camera's render under the chosen footprint, where already made
@@ -1061,13 +993,13 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 return start
             solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
             delta = torch.zeros(6, dtype=torch.float64)
-            residual = target - (rendered(delta[None], coded=True)[0] if at_start is None or through_codec else at_start)
+            residual = target - (rendered(delta[None])[0] if at_start is None else at_start)
             cost = float((residual ** 2).sum())
             for _ in range(POLISH_ITERATIONS):
                 update = torch.linalg.solve(solve, jacobian.T @ residual)
                 length = float(update.abs().max())
                 for fraction in (1.0, 0.5, 0.25):
-                    trial = target - rendered((delta + fraction * update)[None], coded=True)[0]
+                    trial = target - rendered((delta + fraction * update)[None])[0]
                     if float((trial ** 2).sum()) < cost:
                         break
                 else:
