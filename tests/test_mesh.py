@@ -14,7 +14,7 @@ import torch
 from meshseal.errors import MeshError
 from meshseal.mesh import (Material, Mesh, load, normalize, save, simplify, spherical_uv, to_z_up,
                            vertex_normals)
-from meshseal.mesh import io as mesh_io
+from meshseal.mesh import files as mesh_files
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -408,7 +408,7 @@ def test_save_is_atomic(tmp_path, monkeypatch):
     def failing_replace(src, dst):
         raise OSError("disk full")
 
-    monkeypatch.setattr(mesh_io.os, "replace", failing_replace)
+    monkeypatch.setattr(mesh_files.os, "replace", failing_replace)
     with pytest.raises(MeshError, match="disk full"):
         save(mesh, target)
     assert target.read_bytes() == b"previous content"
@@ -529,7 +529,7 @@ def test_saved_files_honour_the_umask(tmp_path, umask):
     try:
         written = save(load(FIXTURES / "sh3d_deckChair" / "deckChair.obj"), tmp_path / "chair.obj")
         written += save(load(FIXTURES / "bunny.glb"), tmp_path / "bunny.glb")
-        mesh_io.atomic_write(tmp_path / "one.png", b"x")
+        mesh_files.atomic_write(tmp_path / "one.png", b"x")
         from meshseal.models.io import save_tensors
 
         save_tensors({"w": torch.zeros(2)}, tmp_path / "model.safetensors", {"format": "test"})

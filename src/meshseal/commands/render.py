@@ -155,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from ..mesh import load, normalize, to_z_up
-    from ..mesh.io import atomic_write, check_output
+    from ..mesh.files import atomic_write
+    from ..mesh.io import check_output
     from ..reading.pictures import image_bytes
     from ..render import lights_at, make_renderer
 

@@ -27,7 +27,7 @@ from PIL import Image
 
 from ..errors import MeshError
 from . import cache as mesh_cache
-from .files import atomic_write, atomic_write_files, file_mode  # noqa: F401 - io's API since before files.py
+from .files import atomic_write_files
 from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, Material, Mesh
 from .preprocess import vertex_normals
 from .validate import (check_glb, check_gltf, check_images, check_obj, check_off, check_ply, check_stl,
