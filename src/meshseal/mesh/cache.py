@@ -177,5 +177,7 @@ def glb_external(data: bytes) -> bool:
 
     size = struct.unpack_from("<I", data, 12)[0]
     document = json.loads(data[20:20 + size])
+    if not isinstance(document, dict):  # nothing the key can vouch for
+        return True
     return any(isinstance(item, dict) and isinstance(item.get("uri"), str) and not item["uri"].startswith("data:")
                for kind in ("buffers", "images") for item in (document.get(kind) or []))
