@@ -655,10 +655,12 @@ def _texture_levels(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mas
 
 @dataclass
 class _Fit:
-    """The original relit to match a picture: the mesh with the fitted ambient factors and the lights."""
+    """The original relit to match a picture: the mesh with the fitted ambient factors, the lights, and
+    the rasterization they were fitted on."""
 
     relit: MeshBatch
     lights: object
+    fragments: object = None
 
 
 def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, margin: int,
@@ -673,7 +675,7 @@ def _relit_view(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: t
     inside = _interior(fragments.pix_to_face >= 0, mask, margin)
     if int(inside.sum()) < 64:
         return None
-    return _Fit(relit, lights), inside
+    return _Fit(relit, lights, fragments), inside
 
 
 def _interior(covered: torch.Tensor, mask: torch.Tensor, margin: int) -> torch.Tensor:
@@ -925,9 +927,12 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
     The texture stage aligns band-passed pictures on image gradients: after JPEG or WebP, whose error
     lies on the same edges, it ends a tenth of a pixel or so off, and a luminance mark's reading loses
     half its evidence to that (docs/reading.md, stage 4). Here the Jacobian is central differences of
-    renders of the object's window (POLISH_STEP pixels each way, twelve renders in one batch), taken
-    once per round and kept for its Gauss-Newton steps (the pose moves by hundredths of a pixel, the
-    Jacobian hardly changes), each step halved twice before the round ends; the light is refitted
+    renders of the object's window (twelve renders in one batch) along six moves that each shift the
+    seen surface by POLISH_STEP pixels (RMS) and are orthogonal in that measure (`_screen_basis`: an
+    orbit about the object, which moves the picture only by parallax and which `_moved`'s turn and shift
+    make as the small difference of two large moves, is measured on its own), taken once per round and
+    kept for its Gauss-Newton steps (the pose moves by hundredths of a pixel, the Jacobian hardly
+    changes), each step halved twice before the round ends; the light is refitted
     at the start of each of POLISH_ROUNDS rounds, a round made only where the last one moved the
     camera by POLISH_AGAIN pixels or more. A least-squares step only ever lowers the cost, and
     a move of more than POLISH_MAX pixels is not taken (a picture the original explains poorly, from
@@ -984,8 +989,13 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
                 if footprint in POLISH_FOOTPRINTS:
                     at_start = starts[POLISH_FOOTPRINTS.index(footprint)]
 
-            moves = POLISH_STEP * torch.cat([torch.eye(6), -torch.eye(6)]).double()
-            both = rendered(moves)
+            # The moves are taken along directions that each move the seen surface by POLISH_STEP px
+            # (RMS) and no two alike (`_screen_basis`), not along `_moved`'s own coordinates: a turn and a
+            # shift that nearly cancel (an orbit about the object, which only parallax shows) is then a
+            # direction of its own, measured by its own renders, rather than the small difference of two
+            # large ones, lost in their noise.
+            basis = _screen_basis(fit.relit, window.camera, fit.fragments, inside).double()  # (6, 6): columns
+            both = rendered(POLISH_STEP * torch.cat([basis.T, -basis.T]))
             jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
             normal = jacobian.T @ jacobian
             scale = float(normal.diagonal().mean())
@@ -996,7 +1006,7 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
             residual = target - (rendered(delta[None])[0] if at_start is None else at_start)
             cost = float((residual ** 2).sum())
             for _ in range(POLISH_ITERATIONS):
-                update = torch.linalg.solve(solve, jacobian.T @ residual)
+                update = basis @ torch.linalg.solve(solve, jacobian.T @ residual)
                 length = float(update.abs().max())
                 for fraction in (1.0, 0.5, 0.25):
                     trial = target - rendered((delta + fraction * update)[None])[0]
@@ -1089,6 +1099,23 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     pick = lambda g: g.permute(1, 2, 0)[inside[0]]  # noqa: E731  (M, 3)
     jacobian = -(pick(gradient_x)[None] * flow[..., :1] + pick(gradient_y)[None] * flow[..., 1:])  # (6 or 7, M, 3)
     return jacobian.reshape(len(flow), -1).T
+
+
+def _screen_basis(mesh: MeshBatch, camera: Cameras, fragments, inside: torch.Tensor) -> torch.Tensor:
+    """Pose moves (6, 6), one a column in `_moved`'s coordinates, that each move the surface seen at the
+    `inside` pixels (1, H, W) of `fragments` (a rasterization from `camera`) by 1 px RMS and are mutually
+    orthogonal in that measure: the flow's Gram matrix to the power -1/2 (eigenvectors scaled). Small
+    moves of the camera that barely move the picture (a turn and a shift that nearly cancel: an orbit
+    about the object, seen only by its parallax) are then directions of their own, scaled up."""
+    from ..render import surface_points
+
+    height, width = inside.shape[-2:]
+    points, _ = surface_points(mesh, fragments, camera)
+    at_pixel = points.new_zeros(height * width, 3).index_copy(0, fragments.pixel, points)
+    seen = at_pixel[inside.reshape(-1)]  # (M, 3)
+    flow = _screen_flow(camera, points.new_zeros(1, 6), seen[None], height, width)[:, 0].reshape(6, -1)
+    values, vectors = torch.linalg.eigh(flow @ flow.T / max(1, len(seen)))
+    return vectors * values.clamp_min(1e-12).rsqrt()[None]
 
 
 def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0,
