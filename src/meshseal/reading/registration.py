@@ -883,8 +883,8 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
     reading subtracts and drowns the mark, even where the texture stage calls the camera registered
     (docs/reading.md, stage 7). The texture stage's band-passed
     alignment cannot see that, and neither can image gradients (their Jacobian points elsewhere):
-    this is a pattern search, each of the six coordinates of `_moved` by +-step in one batch of
-    renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
+    this is a pattern search, six moves by +-step px (those of `_screen_basis`, each shifting the seen
+    surface alike) in one batch of renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
     most SHARPEN_RENDERS renders of the object's own window (at most SHARPEN_WINDOW pixels a side: in
     a large picture, the part around the object's centre). Where it moves the camera to a worse
     view, only the reading can tell: `reading.second_look` reads both."""
@@ -904,7 +904,11 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
 
         centre = torch.zeros(6, dtype=picture.dtype)
         best, step, renders = float(costs(centre[None])[0]), SHARPEN_STEPS[0], 1
-        moves = torch.cat([torch.eye(6), -torch.eye(6)]).to(picture.dtype)
+        # Each move shifts the seen surface by `step` px (RMS), no two alike (`_screen_basis`), as the polish's.
+        seen = window.seen[None]
+        fragments, _ = _rasterized(fit.relit, window.camera, window.side, window.side)
+        basis = _screen_basis(fit.relit, window.camera, fragments, seen & (fragments.pix_to_face >= 0))
+        moves = torch.cat([basis.T, -basis.T]).to(picture.dtype)
         while step >= SHARPEN_STEPS[1] and renders + len(moves) <= SHARPEN_RENDERS:
             trials = centre + step * moves
             trial_costs = costs(trials)
