@@ -605,6 +605,22 @@ def test_a_camera_a_fraction_of_a_pixel_off_is_sharpened_on_the_reading_residual
     assert ((torch.tensor([int(b) for b in decision.bits]) == message[0]).float().mean()) >= 0.95
 
 
+def _bunny_picture_and_jpeg(marked, cameras, lights):
+    """The marked bunny's 256^2 picture (1, 3, H, W, 8-bit values), the same saved as JPEG 75 and read
+    back, and its object mask (1, H, W)."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    with torch.no_grad():
+        clean = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+    buffer = io.BytesIO()
+    Image.fromarray((clean[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(buffer, "JPEG", quality=75)
+    jpeg = torch.from_numpy(np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB")).astype(np.float32) / 255)
+    return clean, jpeg.permute(2, 0, 1)[None], (clean[0].sum(0) > 0).float()[None]
+
+
 def test_a_registered_camera_is_polished_onto_the_picture_and_a_long_move_is_refused(monkeypatch):
     """After JPEG the texture stage leaves a camera a tenth of a pixel or so off, and a luminance mark's
     reading loses much of its evidence to that. `polish` (Gauss-Newton on central differences of
@@ -612,11 +628,6 @@ def test_a_registered_camera_is_polished_onto_the_picture_and_a_long_move_is_ref
     hundredths of a pixel and leaves the true camera within two; on a texture that aliases (a 512^2
     noise texture at 256^2, PNG) the reading's p-value at the polished camera is that of the true
     one's order, far under the camera's it started from. A move longer than POLISH_MAX is not taken."""
-    import io
-
-    import numpy as np
-    from PIL import Image
-
     import meshseal.reading.registration as registration
     from meshseal import payload
     from meshseal.api import Watermarker
@@ -626,13 +637,7 @@ def test_a_registered_camera_is_polished_onto_the_picture_and_a_long_move_is_ref
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
     off = _moved(cameras, torch.tensor([0.15, -0.1, 0.0, 0.05, 0.1, 0.0]), 256)
     assert pose_error(original, cameras, off, 256, 256) > 0.09
-    with torch.no_grad():
-        clean = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
-    mask = (clean[0].sum(0) > 0).float()[None]
-    buffer = io.BytesIO()
-    Image.fromarray((clean[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(buffer, "JPEG", quality=75)
-    jpeg = torch.from_numpy(np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB")).astype(np.float32) / 255)
-    jpeg = jpeg.permute(2, 0, 1)[None]
+    clean, jpeg, mask = _bunny_picture_and_jpeg(marked, cameras, lights)
     assert pose_error(original, cameras, polish(original, off, jpeg, mask), 256, 256) < 0.04
     assert pose_error(original, cameras, polish(original, cameras, jpeg, mask), 256, 256) < 0.02
 
@@ -661,23 +666,13 @@ def test_the_polish_moves_along_an_orbit_that_only_parallax_shows(monkeypatch):
     the polish measures its Jacobian along moves that each shift the picture alike
     (`registration._screen_basis`). Along `_moved`'s own coordinates (the polish before), that orbit
     is the small difference of two large moves, and the polish stops 0.04 px or more off."""
-    import io
-
-    import numpy as np
-    from PIL import Image
-
     import meshseal.reading.registration as registration
     from meshseal.reading.registration import _moved, polish, pose_error
 
     _, _, original, marked = _original_and_marked_batches()
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        clean = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
-    mask = (clean[0].sum(0) > 0).float()[None]
-    buffer = io.BytesIO()
-    Image.fromarray((clean[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)).save(buffer, "JPEG", quality=75)
-    jpeg = torch.from_numpy(np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB")).astype(np.float32) / 255)
-    pictures = (clean, jpeg.permute(2, 0, 1)[None])
+    clean, jpeg, mask = _bunny_picture_and_jpeg(marked, cameras, lights)
+    pictures = (clean, jpeg)
     off = _moved(cameras, torch.tensor([3.0, 0.0, 0.0, 2.7, 0.0, 0.0]), 256)
     assert 0.15 < pose_error(original, cameras, off, 256, 256) < 0.2
     for picture in pictures:
