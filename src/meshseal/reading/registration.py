@@ -884,8 +884,8 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
     (docs/reading.md, stage 7). The texture stage's band-passed
     alignment cannot see that, and neither can image gradients (their Jacobian points elsewhere):
     this is a pattern search, six moves by +-step px (those of `_screen_basis`, each shifting the seen
-    surface alike) in one batch of renders, the step halved when none helps, from SHARPEN_STEPS[0] to SHARPEN_STEPS[1] pixels, at
-    most SHARPEN_RENDERS renders of the object's own window (at most SHARPEN_WINDOW pixels a side: in
+    surface alike) in one batch of renders, the step halved when none helps, from SHARPEN_STEPS[0] to
+    SHARPEN_STEPS[1] pixels, at most SHARPEN_RENDERS renders of the object's own window (at most SHARPEN_WINDOW pixels a side: in
     a large picture, the part around the object's centre). Where it moves the camera to a worse
     view, only the reading can tell: `reading.second_look` reads both."""
     with torch.no_grad():
@@ -1087,13 +1087,8 @@ def _flow_jacobian(mesh: MeshBatch, camera: Cameras, banded: torch.Tensor, insid
     flow, and the band-passed picture `banded` (1, 3, H, W) moves with it (brightness constancy: dI =
     -grad I . flow), as in Lucas-Kanade image alignment. `fragments`: the rasterization of `banded`'s
     render."""
-    from ..render import surface_points
-
     height, width = banded.shape[-2:]
-    points, _ = surface_points(mesh, fragments, camera)
-    at_pixel = points.new_zeros(height * width, 3).index_copy(0, fragments.pixel, points)
-    seen = at_pixel[inside.reshape(-1)]  # (M, 3)
-    flow = _screen_flow(camera, points.new_zeros(1, 6), seen[None], height, width)[:, 0]  # (6, M, 2)
+    flow = _seen_flow(mesh, camera, fragments, inside)  # (6, M, 2)
     if zoom:  # `_zoomed`'s seventh: each pixel moves away from the principal point, 1 px a unit at height / 2
         rows, columns = inside[0].nonzero(as_tuple=True)
         centre_x, centre_y = width / 2 * (1 + camera.principal[0]), height / 2 * (1 - camera.principal[1])
@@ -1111,15 +1106,21 @@ def _screen_basis(mesh: MeshBatch, camera: Cameras, fragments, inside: torch.Ten
     orthogonal in that measure: the flow's Gram matrix to the power -1/2 (eigenvectors scaled). Small
     moves of the camera that barely move the picture (a turn and a shift that nearly cancel: an orbit
     about the object, seen only by its parallax) are then directions of their own, scaled up."""
+    flow = _seen_flow(mesh, camera, fragments, inside).reshape(6, -1)
+    values, vectors = torch.linalg.eigh(flow @ flow.T / max(1, flow.shape[1] // 2))
+    return vectors * values.clamp_min(1e-12).rsqrt()[None]
+
+
+def _seen_flow(mesh: MeshBatch, camera: Cameras, fragments, inside: torch.Tensor) -> torch.Tensor:
+    """The screen flow (6, M, 2) of `_moved`'s six coordinates at the surface points seen at the `inside`
+    pixels (1, H, W; M of them) of `fragments`, a rasterization of `mesh` from `camera` (one camera)."""
     from ..render import surface_points
 
     height, width = inside.shape[-2:]
     points, _ = surface_points(mesh, fragments, camera)
     at_pixel = points.new_zeros(height * width, 3).index_copy(0, fragments.pixel, points)
     seen = at_pixel[inside.reshape(-1)]  # (M, 3)
-    flow = _screen_flow(camera, points.new_zeros(1, 6), seen[None], height, width)[:, 0].reshape(6, -1)
-    values, vectors = torch.linalg.eigh(flow @ flow.T / max(1, len(seen)))
-    return vectors * values.clamp_min(1e-12).rsqrt()[None]
+    return _screen_flow(camera, points.new_zeros(1, 6), seen[None], height, width)[:, 0]
 
 
 def _distinct(scores: torch.Tensor, directions: torch.Tensor, keep: int, min_angle: float = 30.0,
