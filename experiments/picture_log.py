@@ -30,9 +30,9 @@ def hook_readings(order: list[str], handle) -> None:
     state = {"mesh": -1, "call": 0}
     real_kinds, real_read = ev.picture_kinds, ev._read_or_none
 
-    def kinds(encoder, grid, pictures, masks):  # called once per mesh, before its readings
+    def kinds(encoder, grid, pictures, masks, *rest):  # called once per mesh, before its readings
         state.update(mesh=state["mesh"] + 1, call=0, pixels=int(masks[0].sum()), grid=grid)
-        state["kinds"] = real_kinds(encoder, grid, pictures, masks)
+        state["kinds"] = real_kinds(encoder, grid, pictures, masks, *rest)
         return state["kinds"]
 
     def read(watermarker, picture, original, **options):

@@ -82,6 +82,12 @@ POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels 
 POLISH_MAX = 0.5  # ... and a move of more than this many pixels (mean screen distance) not taken
 POLISH_FOOTPRINTS = (1.0, 0.5, 0.75, 1.5)  # how the picture may have sampled the object: a render at 1 / f its size resized to it ...
 POLISH_FOOTPRINT_GAIN = 0.9  # ... a resized one used only where it fits under this share of the point samples' misfit (1.5: never)
+BLOCK_SIDE = 12  # `match_blocks`: blocks of this many pixels a side ...
+BLOCK_SUPERSAMPLE = 4  # ... matched at shifts of 1 / this many pixels ...
+BLOCK_REACH = 1  # ... plus whole pixels up to this many each way ...
+BLOCK_COVER = 0.1  # ... in the blocks where at least this share of the pixels is the object's ...
+BLOCK_ROUNDS = 2  # ... in at most this many rounds (the light refitted each) ...
+BLOCK_MAX = 1.5  # ... a move of more than this many pixels (RMS over the seen surface) not taken
 OUTLINE_ABOVE = 20000  # a mesh of more faces than this searches its silhouettes on a decimated copy ...
 OUTLINE_FACES = 8000  # ... of at most this many faces (`outline_mesh`) ...
 OUTLINE_SHARE = 0.6  # ... where the decimation gets it to this share of the faces or fewer (open sheets' borders stay) ...
@@ -919,6 +925,129 @@ def sharpen(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch
             else:
                 step /= 2
         return _from_window(window, centre, camera)
+
+
+def _splat_weights(dtype) -> torch.Tensor:
+    """The renderer's splat (`render.splatter`, sigma 0.5) over an interior pixel's 3 x 3 neighbours:
+    what turns point samples into the antialiased render there."""
+    offsets = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)
+    rows, columns = torch.meshgrid(offsets, offsets, indexing="ij")
+    weights = torch.exp(-(rows ** 2 + columns ** 2) / (2 * 0.5 ** 2))
+    return (weights / weights.sum()).to(dtype)
+
+
+def match_blocks(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
+    """`camera` moved to where the picture's blocks (BLOCK_SIDE pixels a side) each best match the
+    relit original, found by trying every shift of the render in steps of 1 / BLOCK_SUPERSAMPLE of a
+    pixel up to BLOCK_REACH + 1/2 pixels each way at once, then the six-move pose whose screen flow
+    (`_screen_basis`) best carries each block by its shift (robust least squares, each block weighted by
+    how clearly its best shift stands out).
+
+    A fine texture on a thin or small object (leaves, a fence, a tool's handle) makes the misfit of a
+    pose a rugged function of it: a tenth of a pixel brings each pixel to other texels, and the
+    Gauss-Newton stages stop in a hollow a third of a pixel from the picture's pose, which the reading
+    needs to hundredths. Every shift of a point-sampled render is a sub-sampling of one render
+    BLOCK_SUPERSAMPLE times larger (the splat then applied as the renderer applies it), so all of them
+    cost one render, and a block's best shift is found however rugged the misfit between. The blocks
+    cover the whole object, silhouette included (each shift compared where it and the picture are the
+    object), so a thin object has blocks too. Nothing here looks at a key."""
+    with torch.no_grad():
+        supersample, weights = BLOCK_SUPERSAMPLE, _splat_weights(picture.dtype)
+        for _ in range(BLOCK_ROUNDS):
+            window = _object_window(camera, picture, mask > 0.5, POLISH_WINDOW)
+            side, blocks = window.side, window.side // BLOCK_SIDE
+            view = _relit_view(mesh, window.camera, window.image[None], window.seen[None].to(picture.dtype), margin=1)
+            if view is None or blocks < 2:
+                return camera
+            fit, inside = view
+            large = MeshRenderer(blend="hard")(fit.relit, window.camera, fit.lights, side * supersample,
+                                               side * supersample).rgba
+            # (K, 4, side, side): the render sub-sampled at each of the K = supersample^2 offsets, splatted
+            samples = large[0].reshape(side, supersample, side, supersample, 4).permute(1, 3, 4, 0, 2)
+            samples = samples.reshape(-1, 4, side, side)
+            colours = F.conv2d(samples[:, :3].reshape(-1, 1, side, side), weights[None, None], padding=1)
+            colours, covered = colours.reshape(-1, 3, side, side), samples[:, 3] > 0.5
+            cut, reach = blocks * BLOCK_SIDE, BLOCK_REACH
+            misfits = []  # per whole-pixel shift: (K, blocks, blocks)
+            for whole_y in range(-reach, reach + 1):
+                for whole_x in range(-reach, reach + 1):
+                    moved = torch.roll(colours, (-whole_y, -whole_x), (2, 3))
+                    valid = torch.roll(covered, (-whole_y, -whole_x), (1, 2)) & inside
+                    error = ((moved - window.image[None]) ** 2).sum(1) * valid
+                    count = F.avg_pool2d(valid[:, None, :cut, :cut].to(error.dtype), BLOCK_SIDE)[:, 0]
+                    misfits.append(F.avg_pool2d(error[:, None, :cut, :cut], BLOCK_SIDE)[:, 0] / count.clamp_min(1e-3))
+            # on one regular grid of shifts, 1 / supersample px apart: (y, x, block)
+            width = (2 * reach + 1) * supersample
+            grid = torch.stack(misfits).reshape(2 * reach + 1, 2 * reach + 1, supersample, supersample, -1)
+            grid = grid.permute(0, 2, 1, 3, 4).reshape(width, width, -1).double()
+            flat = grid.reshape(width * width, -1)
+            best = flat.argmin(0)
+            best_y, best_x = best // width, best % width
+            lowest, typical = flat.gather(0, best[None])[0], flat.median(0).values
+            weight = ((typical - lowest) / typical.clamp_min(1e-12)).clamp(0, 1) ** 2
+            cover = F.avg_pool2d(inside[:, None, :cut, :cut].to(picture.dtype), BLOCK_SIDE).reshape(-1)
+            inner = lambda k: (k > 0) & (k < width - 1)  # noqa: E731  (not at the edge of the search)
+            usable = (cover >= BLOCK_COVER) & inner(best_y) & inner(best_x)
+            found = torch.stack([best_x, best_y], 1).double()
+            for axis, (dy, dx) in enumerate(((0, 1), (1, 0))):  # a parabola through each axis's three misfits
+                ys, xs = best_y.clamp(1, width - 2), best_x.clamp(1, width - 2)
+                at = lambda y, x: flat.gather(0, (y * width + x)[None])[0]  # noqa: E731
+                left, right = at(ys - dy, xs - dx), at(ys + dy, xs + dx)
+                curve = left - 2 * lowest + right
+                found[:, axis] += torch.where(curve > 0, 0.5 * (left - right) / curve.clamp_min(1e-30), 0.0).clamp(-0.5, 0.5)
+            found = (found + 0.5) / supersample - 0.5 - reach  # grid index -> pixels
+            if int(usable.sum()) < 6:
+                return camera
+            # each block's mean screen flow under the six moves of the screen basis
+            flow = _seen_flow(fit.relit, window.camera, fit.fragments, inside).double()  # (6, M, 2)
+            basis = _screen_basis(fit.relit, window.camera, fit.fragments, inside).double()
+            rows, columns = inside[0].nonzero(as_tuple=True)
+            within = (rows < cut) & (columns < cut)
+            block_of = (rows // BLOCK_SIDE * blocks + columns // BLOCK_SIDE)[within]
+            total = flow.new_zeros(6, blocks * blocks, 2).index_add_(1, block_of, flow[:, within])
+            count = flow.new_zeros(blocks * blocks).index_add_(0, block_of, flow.new_ones(len(block_of)))
+            per_move = torch.einsum("ik,ijl->jlk", basis, (total / count.clamp_min(1)[None, :, None]))[usable]
+            # a picture that is the render shifted by d shows each surface point d nearer the origin
+            wanted, weight = -found[usable], weight[usable]
+            design = per_move.reshape(-1, 6)
+            move = torch.zeros(6, dtype=torch.float64)
+            for _ in range(5):  # Huber weights at 0.1 px, iteratively reweighted
+                miss = (wanted - per_move @ move).norm(dim=1)
+                robust = (weight * (0.1 / miss.clamp_min(0.1))).repeat_interleave(2)
+                normal = design.T @ (design * robust[:, None]) + 1e-6 * torch.eye(6, dtype=torch.float64)
+                move = torch.linalg.solve(normal, design.T @ (robust * wanted.reshape(-1)))
+            length = float(move.norm())  # px RMS over the seen surface: the basis is orthonormal there
+            if not length <= BLOCK_MAX:
+                return camera
+            camera = _from_window(window, (basis @ move).to(picture.dtype), camera)
+            if length < POLISH_AGAIN:
+                break
+        return camera
+
+
+def polish_blocks(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras | None:
+    """`match_blocks`' camera, polished (`polish`), where the picture's misfit (`polish_misfit`) is lower
+    there than at `camera`; else None (the blocks found nothing better)."""
+    matched = match_blocks(mesh, camera, picture, mask)
+    if matched is camera or not polish_misfit(mesh, matched, picture, mask) < polish_misfit(mesh, camera, picture, mask):
+        return None
+    return polish(mesh, matched, picture, mask)
+
+
+def polish_misfit(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> float:
+    """What `polish` lowers, at `camera`: the mean squared difference between the picture (1, 3, H, W) and
+    the original relit there, both high-passed at POLISH_HIGHPASS, over the interior of its object
+    `mask` (1, H, W); inf where too little of it is left."""
+    with torch.no_grad():
+        window = _object_window(camera, picture, mask > 0.5, POLISH_WINDOW)
+        view = _relit_view(mesh, window.camera, window.image[None], window.seen[None].to(picture.dtype), margin=2)
+        if view is None:
+            return math.inf
+        fit, inside = view
+        band = (lambda x: x) if not POLISH_HIGHPASS else _band_pass(inside, 0.0, POLISH_HIGHPASS)
+        render = MeshRenderer()(fit.relit, window.camera, fit.lights, window.side, window.side).image
+        difference = (band(window.image[None]) - band(render))[0].permute(1, 2, 0)[inside[0]]
+        return float((difference.double() ** 2).mean())
 
 
 def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
