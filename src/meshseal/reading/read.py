@@ -19,6 +19,7 @@ MIN_OBJECT_PIXELS = 64  # fewer object pixels than this: nothing to read
 REGISTER_MIN_SIDE = 96  # an object whose box is narrower than this many pixels is registered on a copy enlarged ...
 REGISTER_MAX_FACTOR = 4  # ... by a whole factor, at most this one ...
 REGISTER_MAX_SIDE = 1024  # ... and to at most this many pixels a side
+RIM_BELOW = 48  # an object whose box is narrower than this many pixels, on a plain background, is polished on its rim too
 
 
 @dataclass
@@ -78,6 +79,14 @@ def clearly_not_empty(pixels: np.ndarray, threshold: float = 0.03) -> bool:
     return int(np.count_nonzero(off)) >= CLEARLY_NOT_EMPTY
 
 
+def object_side(mask: np.ndarray) -> int:
+    """The longer side, in pixels, of the box of a picture's object pixels `mask` (H, W); 0 where none."""
+    rows, columns = np.nonzero(mask > 0.5)
+    if len(rows) == 0:
+        return 0
+    return max(int(rows.max() - rows.min()) + 1, int(columns.max() - columns.min()) + 1)
+
+
 def registration_factor(mask: np.ndarray) -> int:
     """The whole factor by which a picture whose object's pixels are `mask` (H, W) is enlarged for
     registration: 1, or enough to bring the object's box to REGISTER_MIN_SIDE pixels (within
@@ -86,10 +95,9 @@ def registration_factor(mask: np.ndarray) -> int:
     the texture) the texture stage, comparing the picture with renders sampled at its own coarse
     pixels, stops a tenth of a pixel or more off, and on a copy twice as large it does not. A larger
     object gains nothing (an enlarged point-sampled render is not a finer one) and takes longer."""
-    rows, columns = np.nonzero(mask > 0.5)
-    if len(rows) == 0:
+    side = object_side(mask)
+    if side == 0:
         return 1
-    side = max(int(rows.max() - rows.min()) + 1, int(columns.max() - columns.min()) + 1)
     factor = min(REGISTER_MAX_FACTOR, -(-REGISTER_MIN_SIDE // side), REGISTER_MAX_SIDE // max(mask.shape))
     return max(1, factor)
 
@@ -175,7 +183,7 @@ class Reader:
             box = tuple(float(v) for v in boxes_from_mask(torch.from_numpy(mask)[None])[0])
             return Reading(self.method.blind_evidence(pixels, mask, background_tensor), box, None, None)
         from ..render import compiled
-        from .registration import polish, register_with_masks
+        from .registration import polish, polish_composited, register_with_masks
 
         compiled.load()  # registration renders thousands of views: the compiled kernels pay at once
 
@@ -186,14 +194,32 @@ class Reader:
             found = register_with_masks(self.on_cpu(original), picture, guesses, background_tensor.cpu(),
                                         fov_y=fov_y, recut=recut, quick=quick)
         # a camera is the same for the picture at any size: its last hundredths of a pixel at the picture's own
-        camera = polish(self.on_cpu(original), found.camera, tensor.cpu().clamp(0, 1),
-                        torch.from_numpy(np.ascontiguousarray(mask))[None].float()).to(self.device)
+        camera, own_mask = found.camera, torch.from_numpy(np.ascontiguousarray(mask))[None].float()
+        behind = self._plain_background(pixels, alpha) if object_side(mask) < RIM_BELOW else None
+        if behind is not None:  # a small object on a plain background: its rim says where it lies
+            camera = polish_composited(self.on_cpu(original), camera, tensor.cpu().clamp(0, 1), own_mask, behind)
+        camera = polish(self.on_cpu(original), camera, tensor.cpu().clamp(0, 1), own_mask).to(self.device)
         # one tensor for this reading and the second look: the codec found once
         seen = self._expect_codecs(tensor.clamp(0, 1), codecs, luma)
         evidence = self.method.evidence(original, seen, camera)
         second_look = (seen.cpu(), torch.from_numpy(np.ascontiguousarray(mask)), found.alternatives)
         return Reading(evidence, tuple(float(v) / factor for v in found.box), "registered", found.iou, camera,
                        second_look=second_look)
+
+    @staticmethod
+    def _plain_background(pixels: np.ndarray, alpha) -> torch.Tensor | None:
+        """The background (1, 3, H, W) behind the object of a picture (H, W, 3) whose background is plain
+        (a colour or a ramp, `framing.background_plane`, over PLAIN_SHARE of its border) or transparent
+        (black, as its pixels were made); None where it is busy."""
+        from .framing import background_plane
+        from .segmentation import PLAIN_SHARE, plain_share
+
+        if alpha is not None:
+            return torch.zeros(1, 3, *pixels.shape[:2])
+        if plain_share(pixels) < PLAIN_SHARE:
+            return None
+        plane = np.ascontiguousarray(background_plane(pixels), dtype=np.float32)
+        return torch.from_numpy(plane).permute(2, 0, 1)[None].clamp(0, 1)
 
     @staticmethod
     def _expect_codecs(seen: torch.Tensor, codecs: list | None, luma=None) -> torch.Tensor:

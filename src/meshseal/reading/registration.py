@@ -82,6 +82,10 @@ POLISH_HIGHPASS = 4.0  # ... comparing pictures high-passed at this many pixels 
 POLISH_MAX = 0.5  # ... and a move of more than this many pixels (mean screen distance) not taken
 POLISH_FOOTPRINTS = (1.0, 0.5, 0.75, 1.5)  # how the picture may have sampled the object: a render at 1 / f its size resized to it ...
 POLISH_FOOTPRINT_GAIN = 0.9  # ... a resized one used only where it fits under this share of the point samples' misfit (1.5: never)
+COMPOSITE_SIGMAS = (1.0, 0.0)  # `polish_composited`: the window compared as it is, and blurred this much (pixels) first ...
+COMPOSITE_ROUNDS = 8  # ... in at most this many rounds a level, the light refitted each ...
+COMPOSITE_ITERATIONS = 20  # ... of at most this many Gauss-Newton steps ...
+COMPOSITE_MAX = 1.0  # ... and a move of more than this many pixels (mean screen distance) not taken
 BLOCK_SIDE = 12  # `match_blocks`: blocks of this many pixels a side ...
 BLOCK_SUPERSAMPLE = 4  # ... matched at shifts of 1 / this many pixels ...
 BLOCK_REACH = 1  # ... plus whole pixels up to this many each way ...
@@ -1155,6 +1159,136 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
             if float(delta.abs().max()) < POLISH_AGAIN:  # the light refitted at a camera this near would change nothing
                 break
         return camera if pose_error(mesh, first.camera, first.seen_from(camera), side, side) <= POLISH_MAX else start
+
+
+def polish_composited(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
+                      background: torch.Tensor) -> Cameras:
+    """The registered `camera` of a small object's `picture` (1, 3, H, W) on a plain background
+    (`background` (1, 3, H, W): the picture's own background, a colour or a ramp), brought to where the
+    relit original, rendered as the reading renders it and composited over that background, best
+    explains the whole of the object's window (`mask` (1, H, W): its pixels), its antialiased rim
+    included.
+
+    `polish` compares interior pixels only (two pixels from any edge, so that its moves never bring the
+    background in): on an object of a few hundred pixels few or none are left, and the texture there is
+    finer than the pixels, so its misfit is rugged and its steps stop a fifth of a pixel or more from the
+    picture's pose, where a mark whose cells are smaller than a pixel is lost. The rim's pixels mix the
+    object with the background in proportion to how much of each pixel the object covers: a sub-pixel
+    move changes them smoothly, and on a small object they are a large share of its pixels. Gauss-Newton
+    along `_screen_basis`'s moves (central differences of renders at +-POLISH_STEP px), each step halved
+    twice before a round ends, the light refitted at the start of each of at most COMPOSITE_ROUNDS
+    rounds; a move of more than COMPOSITE_MAX px is not taken. Nothing here looks at a key."""
+    with torch.no_grad():
+        start = camera
+        # the window: the object's box with its antialiased rim and a pixel or two of background around
+        around = F.max_pool2d((mask > 0.5).to(picture.dtype)[:, None], 5, 1, 2)[:, 0] > 0.5
+        first = _object_window(camera, picture, around, POLISH_WINDOW)
+        side, crop = first.side, first.image[None]
+        behind = _object_window(camera, background, around, POLISH_WINDOW).image[None]  # the same window
+        # How the picture sampled the object (`polish`'s footprints): a picture made smaller after it was
+        # rendered has a rim its own renderer's antialiasing does not make. A smaller footprint's blur also
+        # explains a misaligned start better, so it is judged where each one's alignment ends.
+        shrunk = [factor for factor in POLISH_FOOTPRINTS if factor < 1.0]
+        costs = [_composite_cost(mesh, start, first, crop, behind, factor) for factor in shrunk]
+        factors = [1.0] + ([shrunk[min(range(len(costs)), key=costs.__getitem__)]] if shrunk else [])
+        ends, costs = [], []
+        for factor in factors:
+            # From the start as it is, and from where the blurred levels take it (a wider basin, but the
+            # sharp pixels can disagree).
+            coarse = start
+            for sigma in COMPOSITE_SIGMAS:
+                coarse = _composite_level(mesh, coarse, first, crop, behind, sigma, factor)
+            for end in (_composite_level(mesh, start, first, crop, behind, 0.0, factor), coarse):
+                if pose_error(mesh, first.camera, first.seen_from(end), side, side) <= COMPOSITE_MAX:
+                    gain = 1.0 if factor == 1.0 else POLISH_FOOTPRINT_GAIN  # a resized render must explain clearly better
+                    ends.append(end)
+                    costs.append(_composite_cost(mesh, end, first, crop, behind, factor) / gain)
+        return ends[min(range(len(ends)), key=costs.__getitem__)] if ends else start
+
+
+def _composited(relit: MeshBatch, cameras: Cameras, lights, side: int, behind: torch.Tensor, factor: float) -> torch.Tensor:
+    """Renders (B, 3, side, side) of `relit` from `cameras` (each rendering the window) composited over
+    the background `behind` (1, 3, side, side), at 1 / `factor` the window's size and resized to it as an
+    image tool resizes (bicubic, antialiased when it shrinks) where `factor` is not 1."""
+    size = max(8, round(side / factor))
+    rgba = MeshRenderer()(relit, cameras, lights, size, size).rgba.permute(0, 3, 1, 2)  # over black
+    if size != side:
+        behind = F.interpolate(behind, size=(size, size), mode="bilinear", align_corners=False)
+    image = rgba[:, :3] + (1.0 - rgba[:, 3:]) * behind  # the background in proportion to what is uncovered
+    if size != side:
+        image = F.interpolate(image, size=(side, side), mode="bicubic", antialias=size > side, align_corners=False)
+    return image
+
+
+def _composite_cost(mesh: MeshBatch, camera: Cameras, first: _Window, crop: torch.Tensor, behind: torch.Tensor,
+                    factor: float = 1.0) -> float:
+    """What `polish_composited` lowers, at `camera`: the squared difference over its window between the
+    picture and the relit original (the light fitted there) composited over the background (`_composited`)."""
+    from .relight import fitted_light
+
+    window = replace(first, camera=first.seen_from(camera))
+    relit, lights, _ = fitted_light(mesh, crop, window.camera)
+    image = _composited(relit, window.camera, lights, first.side, behind, factor)
+    return float(((image - crop).double() ** 2).sum())
+
+
+def _composite_level(mesh: MeshBatch, camera: Cameras, first: _Window, crop: torch.Tensor, behind: torch.Tensor,
+                     sigma: float, factor: float = 1.0) -> Cameras:
+    """`polish_composited`'s rounds on its window (`first`: the picture's `crop` and the background
+    `behind` it, (1, 3, S, S) each), both sides blurred by `sigma` px (0: as they are), rendered at the
+    footprint `factor` (`_composited`)."""
+    from ..render.blur import gaussian_blur
+    from .relight import fitted_light
+
+    side = first.side
+    blur = (lambda x: x) if not sigma else (lambda x: gaussian_blur(x, sigma))  # noqa: E731
+    target = blur(crop)[0].permute(1, 2, 0).reshape(-1).double()
+    for _ in range(COMPOSITE_ROUNDS):
+        window = replace(first, camera=first.seen_from(camera))
+        relit, lights, fragments = fitted_light(mesh, crop, window.camera)
+
+        def rendered(deltas: torch.Tensor) -> torch.Tensor:
+            image = _composited(relit, _moved(window.camera, deltas.to(crop.dtype), side), lights[[0] * len(deltas)],
+                                side, behind, factor)
+            return blur(image).permute(0, 2, 3, 1).reshape(len(deltas), -1).double()
+
+        basis = _screen_basis(relit, window.camera, fragments, fragments.pix_to_face >= 0).double()
+        both = rendered(POLISH_STEP * torch.cat([basis.T, -basis.T]))
+        jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
+        normal = jacobian.T @ jacobian
+        scale = float(normal.diagonal().mean())
+        if not scale > 1e-12:  # nothing to align on
+            break
+        solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
+        delta = torch.zeros(6, dtype=torch.float64)
+        residual = target - rendered(delta[None])[0]
+        cost = float((residual ** 2).sum())
+        for _ in range(COMPOSITE_ITERATIONS):
+            update = basis @ torch.linalg.solve(solve, jacobian.T @ residual)
+            for fraction in (1.0, 0.5, 0.25):
+                trial = target - rendered((delta + fraction * update)[None])[0]
+                if float((trial ** 2).sum()) < cost:
+                    break
+            else:
+                break
+            delta, residual = delta + fraction * update, trial
+            cost = float((residual ** 2).sum())
+            if fraction * float(update.abs().max()) < TEXTURE_DONE / 2:
+                break
+        if not bool(delta.any()):  # not one step helped: a pattern search along the same moves instead
+            moves, step = torch.cat([basis.T, -basis.T]), SHARPEN_STEPS[0]
+            while step >= SHARPEN_STEPS[1]:
+                trials = delta + step * moves
+                trial_costs = ((target - rendered(trials)) ** 2).sum(1)
+                pick = int(trial_costs.argmin())
+                if float(trial_costs[pick]) < cost:
+                    delta, cost = trials[pick], float(trial_costs[pick])
+                else:
+                    step /= 2
+        camera = _from_window(window, delta.to(crop.dtype), camera)
+        if float(delta.abs().max()) < TEXTURE_DONE:  # the light refitted this near would change nothing
+            break
+    return camera
 
 
 def _texture_level(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor, sigma: float,
