@@ -1132,33 +1132,48 @@ def polish(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.
             # direction of its own, measured by its own renders, rather than the small difference of two
             # large ones, lost in their noise.
             basis = _screen_basis(fit.relit, window.camera, fit.fragments, inside).double()  # (6, 6): columns
-            both = rendered(POLISH_STEP * torch.cat([basis.T, -basis.T]))
-            jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
-            normal = jacobian.T @ jacobian
-            scale = float(normal.diagonal().mean())
-            if not scale > 1e-12:  # nothing to align on
+            steps = _gauss_newton(rendered, basis, target, POLISH_ITERATIONS, TEXTURE_DONE, at_start)
+            if steps is None:  # nothing to align on
                 return start
-            solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
-            delta = torch.zeros(6, dtype=torch.float64)
-            residual = target - (rendered(delta[None])[0] if at_start is None else at_start)
-            cost = float((residual ** 2).sum())
-            for _ in range(POLISH_ITERATIONS):
-                update = basis @ torch.linalg.solve(solve, jacobian.T @ residual)
-                length = float(update.abs().max())
-                for fraction in (1.0, 0.5, 0.25):
-                    trial = target - rendered((delta + fraction * update)[None])[0]
-                    if float((trial ** 2).sum()) < cost:
-                        break
-                else:
-                    break
-                delta, residual = delta + fraction * update, trial
-                cost = float((residual ** 2).sum())
-                if fraction * length < TEXTURE_DONE:
-                    break
+            delta = steps[0]
             camera = _from_window(window, delta.to(picture.dtype), camera)
             if float(delta.abs().max()) < POLISH_AGAIN:  # the light refitted at a camera this near would change nothing
                 break
         return camera if pose_error(mesh, first.camera, first.seen_from(camera), side, side) <= POLISH_MAX else start
+
+
+def _gauss_newton(rendered, basis: torch.Tensor, target: torch.Tensor, iterations: int, done: float,
+                  at_start: torch.Tensor | None = None):
+    """The Gauss-Newton steps of `polish` and `polish_composited`: `rendered` (K, 6) moves -> (K, N) values
+    to compare with `target` (N,); the Jacobian is central differences at +-POLISH_STEP along the
+    columns of `basis` (6, 6), taken once; each step is halved twice before the steps end, and they end
+    once one moves under `done` px or after `iterations`. `at_start`: the render at no move, where already
+    made. Returns the move (6,) and its cost (the sum of squares left), or None where the renders do not
+    change along any move (nothing to align on)."""
+    both = rendered(POLISH_STEP * torch.cat([basis.T, -basis.T]))
+    jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
+    normal = jacobian.T @ jacobian
+    scale = float(normal.diagonal().mean())
+    if not scale > 1e-12:
+        return None
+    solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
+    delta = torch.zeros(6, dtype=torch.float64)
+    residual = target - (rendered(delta[None])[0] if at_start is None else at_start)
+    cost = float((residual ** 2).sum())
+    for _ in range(iterations):
+        update = basis @ torch.linalg.solve(solve, jacobian.T @ residual)
+        length = float(update.abs().max())
+        for fraction in (1.0, 0.5, 0.25):
+            trial = target - rendered((delta + fraction * update)[None])[0]
+            if float((trial ** 2).sum()) < cost:
+                break
+        else:
+            break
+        delta, residual = delta + fraction * update, trial
+        cost = float((residual ** 2).sum())
+        if fraction * length < done:
+            break
+    return delta, cost
 
 
 def polish_composited(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
@@ -1253,28 +1268,10 @@ def _composite_level(mesh: MeshBatch, camera: Cameras, first: _Window, crop: tor
             return blur(image).permute(0, 2, 3, 1).reshape(len(deltas), -1).double()
 
         basis = _screen_basis(relit, window.camera, fragments, fragments.pix_to_face >= 0).double()
-        both = rendered(POLISH_STEP * torch.cat([basis.T, -basis.T]))
-        jacobian = ((both[:6] - both[6:]) / (2 * POLISH_STEP)).T
-        normal = jacobian.T @ jacobian
-        scale = float(normal.diagonal().mean())
-        if not scale > 1e-12:  # nothing to align on
+        steps = _gauss_newton(rendered, basis, target, COMPOSITE_ITERATIONS, TEXTURE_DONE / 2)
+        if steps is None:  # nothing to align on
             break
-        solve = normal + TEXTURE_DAMPING * scale * torch.eye(6, dtype=torch.float64)
-        delta = torch.zeros(6, dtype=torch.float64)
-        residual = target - rendered(delta[None])[0]
-        cost = float((residual ** 2).sum())
-        for _ in range(COMPOSITE_ITERATIONS):
-            update = basis @ torch.linalg.solve(solve, jacobian.T @ residual)
-            for fraction in (1.0, 0.5, 0.25):
-                trial = target - rendered((delta + fraction * update)[None])[0]
-                if float((trial ** 2).sum()) < cost:
-                    break
-            else:
-                break
-            delta, residual = delta + fraction * update, trial
-            cost = float((residual ** 2).sum())
-            if fraction * float(update.abs().max()) < TEXTURE_DONE / 2:
-                break
+        delta, cost = steps
         if not bool(delta.any()):  # not one step helped: a pattern search along the same moves instead
             moves, step = torch.cat([basis.T, -basis.T]), SHARPEN_STEPS[0]
             while step >= SHARPEN_STEPS[1]:
