@@ -1190,9 +1190,13 @@ def polish_composited(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     picture's pose, where a mark whose cells are smaller than a pixel is lost. The rim's pixels mix the
     object with the background in proportion to how much of each pixel the object covers: a sub-pixel
     move changes them smoothly, and on a small object they are a large share of its pixels. Gauss-Newton
-    along `_screen_basis`'s moves (central differences of renders at +-POLISH_STEP px), each step halved
-    twice before a round ends, the light refitted at the start of each of at most COMPOSITE_ROUNDS
-    rounds; a move of more than COMPOSITE_MAX px is not taken. Nothing here looks at a key."""
+    along `_screen_basis`'s moves (`_gauss_newton`; where no step helps, a pattern search along the same
+    moves, SHARPEN_STEPS), the light refitted at the start of each of at most COMPOSITE_ROUNDS rounds;
+    run from `camera` as it is and from where the window blurred (COMPOSITE_SIGMAS) first takes it, each
+    with point samples and with the smaller render of `polish`'s footprints that fits `camera` best (a
+    picture made smaller after it was rendered has another rim); the end the composite explains best is
+    kept, a resized render's only where its misfit is under POLISH_FOOTPRINT_GAIN of the point samples',
+    and a move of more than COMPOSITE_MAX px is not taken. Nothing here looks at a key."""
     with torch.no_grad():
         start = camera
         # the window: the object's box with its antialiased rim and a pixel or two of background around
