@@ -15,7 +15,10 @@ and sampling, without the mark), which tells whether the mark is lost in an engi
 prediction of them is what misfits.
 
     python experiments/engine_reading.py --data data --meshes 24 --engines ours cycles workbench eevee \
-        --cache runs/engine_cache --vary read_affine=0,1 [--register] [--model default]
+        --cache runs/engine_cache --vary read_affine=0,1 [--register] [--model default] [--blender KEY=VALUE ...]
+
+`--blender` renders with a setting of Blender's renderer other than its default (into its own --cache):
+what a Workbench picture's studio light, highlight, antialiasing or dither costs the reading.
 """
 
 from __future__ import annotations
@@ -38,8 +41,9 @@ from meshseal.training.finetune import mesh_from_item
 BACKGROUND = (0.5, 0.5, 0.5)
 
 
-def render_cache(wm, dataset, engines: list[str], count: int, cache: Path) -> None:
-    """Each mesh's 8-bit pictures, original and marked, by each engine (`{engine}_o`, `{engine}_m`)."""
+def render_cache(wm, dataset, engines: list[str], count: int, cache: Path, blender: dict | None = None) -> None:
+    """Each mesh's 8-bit pictures, original and marked, by each engine (`{engine}_o`, `{engine}_m`);
+    `blender`: settings of Blender's renderer other than its defaults (`render.blender.BlenderRenderer`)."""
     from meshseal.render import make_renderer
 
     renderers = {}
@@ -56,7 +60,8 @@ def render_cache(wm, dataset, engines: list[str], count: int, cache: Path) -> No
         cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(index))
         pictures = dict(np.load(path)) if path.exists() else {}
         for engine in todo:
-            renderer = renderers.setdefault(engine, make_renderer(engine))
+            options = (blender or {}) if engine in ("cycles", "eevee", "workbench") else {}
+            renderer = renderers.setdefault(engine, make_renderer(engine, **options))
             for key, m in canonical.items():
                 with torch.no_grad():
                     image = renderer.render(m, cameras, lights, 256, 256, background=BACKGROUND)[0, ..., :3]
@@ -81,7 +86,20 @@ def main() -> None:
     parser.add_argument("--oracle", action="store_true",
                         help="read against the engine's own unmarked render (camera known)")
     parser.add_argument("--attack", default="none", help="a picture attack of `meshseal eval --attacks` (jpeg90, webp80, ...)")
+    parser.add_argument("--blender", action="append", default=[], metavar="KEY=VALUE",
+                        help="a setting of Blender's renderer (render.blender.BlenderRenderer), e.g. workbench_light=FLAT, "
+                             "workbench_specular=0, dither=0, antialiasing=OFF; give each its own --cache")
     args = parser.parse_args()
+    from meshseal.render.blender import BlenderRenderer
+
+    blender = {}
+    for setting in args.blender:
+        name, _, value = setting.partition("=")
+        default = getattr(BlenderRenderer, name, None)
+        if default is None or name.startswith("_"):
+            parser.error(f"--blender: the renderer has no setting '{name}'")
+        blender[name] = value if isinstance(default, str) else (value not in ("0", "false", "False") if isinstance(default, bool)
+                                                                else type(default)(value))
     from meshseal.evaluation.attacks import ATTACKS, apply
 
     if args.attack not in ATTACKS:
@@ -93,7 +111,7 @@ def main() -> None:
         parser.error(f"--vary: the model has no setting '{key}'")
     dataset = MeshDataset(args.data, "test", seed=0)
     count = min(args.meshes, len(dataset))
-    render_cache(wm, dataset, args.engines, count, args.cache)
+    render_cache(wm, dataset, args.engines, count, args.cache, blender)
     clean = {}
     if args.oracle:
         if args.register:

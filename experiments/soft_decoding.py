@@ -3,7 +3,10 @@
 1. Simulated soft bits +-mu + N(0, 1) (seeded), for the 64- and 32-bit schemas.
 2. With --data: the default model's soft bits read from pictures of the first --meshes test meshes (one
    seeded view each, 256^2, camera known, marked with a random ID at strength 1) after picture attacks;
-   only pictures whose mark is detected (as `meshseal detect` reports a message only then).
+   only pictures whose mark is detected (as `meshseal detect` reports a message only then). Of those
+   the decoding leaves without a message, how many no decoder could read: another codeword correlates
+   with the soft bits better than the true one (`likelier_than_truth`), so a maximum-likelihood decoder
+   would name it; the rest are left by the decoder's caution (its posterior rule) or its search.
 
     python experiments/soft_decoding.py [--draws 400] [--data data --meshes 284 --attacks none,jpeg90,...]
 """
@@ -42,6 +45,20 @@ def simulate(draws: int) -> None:
             print(f"| {n_bits} | {mu} | {cells[0]} | {cells[1]} (of {draws}) |")
 
 
+def likelier_than_truth(soft, identity: int) -> bool:
+    """Whether a codeword other than the one of `identity` correlates better with the soft bits (N,):
+    the ordered-statistics candidates (`payload._candidates`), under the public key."""
+    from meshseal import payload
+
+    z = np.asarray(soft, dtype=np.float64)
+    ordered, order, candidates, correlation, whitening = payload._candidates(z, None)
+    truth = payload.encode(identity, None, len(z)).numpy().astype(np.uint8)
+    own = (truth ^ whitening)[order].astype(np.int64)
+    own_correlation = float(((2.0 * own - 1.0) * ordered).sum())
+    others = correlation[~(candidates == own).all(1)]
+    return bool(len(others)) and float(others.max()) > own_correlation
+
+
 def pictures(data: Path, meshes: int, attacks: list[str], model: str) -> None:
     import torch
 
@@ -62,6 +79,7 @@ def pictures(data: Path, meshes: int, attacks: list[str], model: str) -> None:
     counts = {a: {False: {"right": 0, "wrong": 0, "failed": 0}, True: {"right": 0, "wrong": 0, "failed": 0}}
               for a in attacks}
     detected = {a: 0 for a in attacks}
+    beyond = {a: 0 for a in attacks}  # failed reads where another codeword is likelier than the true one
     for index in range(min(meshes, len(dataset))):
         batch = charted_item(collate([dataset[index]]))
         identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
@@ -85,14 +103,18 @@ def pictures(data: Path, meshes: int, attacks: list[str], model: str) -> None:
                 continue
             detected[name] += 1
             for retry in (False, True):
-                counts[name][retry][outcome(payload.decode(decision.soft, None, soft_retry=retry).message, identity)] += 1
+                result = outcome(payload.decode(decision.soft, None, soft_retry=retry).message, identity)
+                counts[name][retry][result] += 1
+                if retry and result == "failed" and likelier_than_truth(decision.soft, identity):
+                    beyond[name] += 1
         print(f"mesh {index + 1}/{meshes}", file=sys.stderr, flush=True)
     print(f"\n{model}, first {meshes} test meshes, one view each, camera known; of the pictures detected:\n")
-    print("| attack | pictures detected | hard decoding alone: right / wrong / failed | with the check and the soft retry |")
-    print("|---|---|---|---|")
+    print("| attack | pictures detected | hard decoding alone: right / wrong / failed | with the check and the soft retry "
+          "| of its failed, another codeword likelier than the true one |")
+    print("|---|---|---|---|---|")
     for name in attacks:
         cells = [" / ".join(str(counts[name][r][k]) for k in ("right", "wrong", "failed")) for r in (False, True)]
-        print(f"| {name} | {detected[name]} | {cells[0]} | {cells[1]} |")
+        print(f"| {name} | {detected[name]} | {cells[0]} | {cells[1]} | {beyond[name]} |")
 
 
 def main() -> None:

@@ -148,3 +148,31 @@ def test_detect_reads_a_cycles_picture(tmp_path, capsys):
     assert main(["render", str(FIXTURES / "bunny.glb"), "-o", str(unmarked), "--engine", "cycles", "--samples", "16",
                  "--width", "256", "--height", "256"]) == 0
     assert not meshseal.load().detect(unmarked, FIXTURES / "bunny.glb").detected
+
+
+def test_workbench_settings_reach_blender():
+    """Workbench's settings other than Blender's defaults are applied: unlit (FLAT), without
+    antialiasing and dither it shows the texture as our renderer's unlit render samples it, to about a
+    grey level, where its studio light shades it by tens of levels; a setting Blender lacks is refused."""
+    from dataclasses import replace
+
+    from meshseal.render.lighting import K_AMBIENT
+
+    mesh = _bunny()
+    eye = torch.tensor([[0.0, -2.5, 3.0]])
+    cameras = Cameras(eye, torch.zeros_like(eye), torch.tensor([[0.0, 0.0, 1.0]]), 50.0)
+    lights = lights_at(torch.tensor([[2.0, 1.0, 2.0]]))
+    flat = make_renderer("workbench", workbench_light="FLAT", dither=0.0, antialiasing="OFF").render(mesh, cameras, lights, 96, 96)
+    studio = make_renderer("workbench", dither=0.0, antialiasing="OFF").render(mesh, cameras, lights, 96, 96)
+    unlit = replace(mesh, materials=[replace(m, ambient=torch.full_like(m.ambient, 1.0 / K_AMBIENT)) for m in mesh.materials])
+    ours = MeshRenderer(blend="hard").render(unlit, cameras, lights_at(eye, 0.0), 96, 96)
+    inside = (ours[..., 3] > 0.99) & (flat[..., 3] > 0.99) & (studio[..., 3] > 0.99)
+    assert int(inside.sum()) > 1000
+
+    def levels(a, b):  # mean absolute difference over the object, in grey levels
+        return float((a[..., :3][inside] - b[..., :3][inside]).abs().mean() * 255)
+
+    assert levels(flat, ours) < 2.0
+    assert levels(studio, ours) > 10.0
+    with pytest.raises(meshseal.MeshsealError, match="antialiasing"):
+        make_renderer("workbench", antialiasing="64")

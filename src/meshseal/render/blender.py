@@ -83,7 +83,11 @@ class BlenderRenderer:
     `hdri` studio light); `samples`: per pixel (None: the engine's default here); `view_transform`:
     Standard or AgX (Blender's default); `roughness`/`specular`: the Principled BSDF's (a matte
     surface by default, like our shader's). Workbench lights with its own studio light whatever
-    `light` says, as Blender does."""
+    `light` says, as Blender does; `workbench_light` (STUDIO, Blender's default, or FLAT: the texture
+    unlit), `workbench_specular` (the studio light's highlight), `dither` (the noise Blender adds before
+    rounding to 8 bits, its `dither_intensity`) and `antialiasing` (Workbench's `render_aa`: OFF, FXAA,
+    5, 8, 11, 16 or 32 samples) take Blender's defaults unless set, to measure what each costs the
+    reading (experiments/engine_reading.py --blender)."""
 
     engine: str = "cycles"
     view_transform: str = "Standard"
@@ -94,6 +98,10 @@ class BlenderRenderer:
     specular: float = 0.0
     threads: int = 0
     seed: int = 0
+    workbench_light: str = "STUDIO"
+    workbench_specular: bool = True
+    dither: float = 1.0
+    antialiasing: str = "8"
 
     def __post_init__(self) -> None:
         if self.engine not in ENGINES:
@@ -102,6 +110,10 @@ class BlenderRenderer:
             raise MeshsealError(f"unknown view transform '{self.view_transform}' ({' | '.join(VIEW_TRANSFORMS)})")
         if self.light not in LIGHT_KINDS:
             raise MeshsealError(f"unknown light '{self.light}' ({' | '.join(LIGHT_KINDS)})")
+        if self.workbench_light not in ("STUDIO", "FLAT"):
+            raise MeshsealError(f"unknown Workbench light '{self.workbench_light}' (STUDIO | FLAT)")
+        if self.antialiasing not in ("OFF", "FXAA", "5", "8", "11", "16", "32"):
+            raise MeshsealError(f"unknown Workbench antialiasing '{self.antialiasing}' (OFF | FXAA | 5 | 8 | 11 | 16 | 32)")
         if not available():
             raise MeshsealError("Blender rendering needs bpy: pip install 'meshseal[blender]' (bpy==5.0.1, Python 3.11)")
         if self.light == "world" and self.hdri not in studio_hdris():
@@ -123,6 +135,8 @@ class BlenderRenderer:
             "camera_to_world": torch.linalg.inv(cameras.view_matrix().double()).cpu().numpy(),
             "fov_y": np.array(cameras.fov_y), "principal": np.array(cameras.principal, dtype=np.float64),
             "light_kind": np.array(self.light),
+            "workbench_light": np.array(self.workbench_light), "workbench_specular": np.array(self.workbench_specular),
+            "dither": np.array(float(self.dither)), "antialiasing": np.array(self.antialiasing),
         }
         if mesh.uvs is not None:
             scene["uvs"] = mesh.uvs.detach().cpu().numpy()
