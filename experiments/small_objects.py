@@ -9,6 +9,12 @@ metadata's camera, seconds), then a table by fixture and by object size.
 
     python experiments/small_objects.py --work DIR [--views 4] [--distances 14 20] [--part 0/2] [--set MODULE.NAME=VALUE]
     python experiments/small_objects.py --merge DIR/part0.jsonl DIR/part1.jsonl
+    python experiments/small_objects.py --work DIR --oracle
+
+`--oracle` reads each picture with its camera only, as shipped and against the unmarked original rendered
+by `meshseal render` from the same camera (the prediction no user has), and prints the mark's own size in
+the picture (its changed pixels and their RMS in grey levels): whether a small object is lost to the
+prediction or to the mark's energy.
 
 The pictures are made once into `--work` (reused); `--part I/N` reads every N-th picture from the I-th
 (two processes on two cores); `--set` overrides a module constant (e.g.
@@ -37,6 +43,19 @@ MESSAGE = "ab42"
 SIZES = ((0, 300), (300, 600), (600, 10 ** 9))
 
 
+def cameras_of(number: int, views: int, distances: list[float]) -> list[str]:
+    """The `--camera` arguments of fixture `number`'s seeded views."""
+    generator = random.Random(number)
+    cameras = []
+    for distance in distances:
+        for _ in range(views):
+            azimuth, elevation = generator.uniform(0, 2 * math.pi), math.radians(generator.uniform(10, 50))
+            cameras.append(f"--camera={distance * math.cos(elevation) * math.cos(azimuth):.3f},"
+                           f"{distance * math.cos(elevation) * math.sin(azimuth):.3f},"
+                           f"{distance * math.sin(elevation):.3f}")
+    return cameras
+
+
 def make_pictures(work: Path, views: int, distances: list[float]) -> list[dict]:
     """Mark each fixture and render it from far away (the command line's own files); a copy of each
     picture without metadata beside it."""
@@ -53,14 +72,7 @@ def make_pictures(work: Path, views: int, distances: list[float]) -> list[dict]:
         marked.parent.mkdir(exist_ok=True)
         subprocess.run([*command, "embed", str(ROOT / "tests" / "fixtures" / path), "-o", str(marked), "--message",
                         MESSAGE, "--views", "0"], check=True, capture_output=True)
-        generator = random.Random(number)
-        cameras = []
-        for distance in distances:
-            for _ in range(views):
-                azimuth, elevation = generator.uniform(0, 2 * math.pi), math.radians(generator.uniform(10, 50))
-                cameras.append(f"--camera={distance * math.cos(elevation) * math.cos(azimuth):.3f},"
-                               f"{distance * math.cos(elevation) * math.sin(azimuth):.3f},"
-                               f"{distance * math.sin(elevation):.3f}")
+        cameras = cameras_of(number, views, distances)
         subprocess.run([*command, "render", str(marked), "-o", str(work / f"{name}.png"), "--width", "256", "--height",
                         "256", *cameras], check=True, capture_output=True)
         for view in range(len(cameras)):
@@ -116,6 +128,74 @@ def read(items: list[dict], settings: list[str]) -> None:
         print(json.dumps(row), flush=True)
 
 
+def oracle(work: Path, items: list[dict], views: int, distances: list[float]) -> None:
+    """Each picture read with its camera, as shipped and against the unmarked original's render from
+    that camera (rendered once into `work`), with the mark's size in the picture; a table by size."""
+    from dataclasses import replace
+
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from meshseal.threads import configure
+
+    configure()
+    import meshseal
+    import meshseal.methods.spread as spread_module
+    import meshseal.reading.footprint as footprint_module
+
+    command = [sys.executable, "-m", "meshseal.cli"]
+    for number, (name, path) in enumerate(FIXTURES.items()):
+        if not (work / f"original_{name}_0.png").exists():
+            subprocess.run([*command, "render", str(ROOT / "tests" / "fixtures" / path), "-o", str(work / f"original_{name}.png"),
+                            "--width", "256", "--height", "256", *cameras_of(number, views, distances)],
+                           check=True, capture_output=True)
+    relit, footprint, remember = spread_module.relit_residual, spread_module.picture_footprint, footprint_module.remember_choice
+    clean = {}
+
+    def against_original(mesh, image, cameras, **options):  # the unmarked render as the prediction
+        found = relit(mesh, image, cameras, **options)
+        flat = torch.from_numpy(clean["picture"].astype(np.float32) / 255.0).reshape(-1, 3).to(found.expected)
+        return replace(found, expected=flat.index_select(0, found.fragments.pixel.index_select(0, found.keep)))
+
+    watermarker = meshseal.load()
+    originals, rows = {}, []
+    for item in items:
+        original = originals.setdefault(item["mesh"], watermarker.original(ROOT / "tests" / "fixtures" / FIXTURES[item["mesh"]]))
+        picture = Path(item["picture"])
+        marked = np.asarray(Image.open(picture).convert("RGB"))
+        clean["picture"] = np.asarray(Image.open(picture.with_name("original_" + picture.name)).convert("RGB"))
+        changed = np.abs(marked.astype(np.int16) - clean["picture"].astype(np.int16)).max(-1) > 0
+        difference = (marked.astype(np.float64) - clean["picture"]) ** 2
+        row = {"picture": picture.name, "mesh": item["mesh"], "pixels": int((np.abs(marked.astype(np.int16) - marked[0, 0]).sum(-1) > 6).sum()),
+               "mark_pixels": int(changed.sum()),
+               "mark_rms": float(np.sqrt(difference.mean(-1)[changed].mean())) if changed.any() else 0.0}
+        for label, patched in (("shipped", False), ("oracle", True)):
+            if patched:
+                spread_module.relit_residual = against_original
+                spread_module.picture_footprint = lambda *a, **k: None  # the unmarked render is sampled as the picture
+                footprint_module.remember_choice = lambda *a, **k: None
+            try:
+                found = watermarker.decide([watermarker.read(item["picture"], original)])
+                row[label], row[f"{label}_p"] = bool(found.detected), float(found.p_value)
+            except meshseal.MeshsealError:
+                row[label], row[f"{label}_p"] = False, 1.0
+            finally:
+                spread_module.relit_residual, spread_module.picture_footprint = relit, footprint
+                footprint_module.remember_choice = remember
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    print("| pictures | n | camera known: detected | against the unmarked render: detected | the mark's changed pixels, median | their RMS, grey levels, median |")
+    print("|---|---|---|---|---|---|")
+    for low, high in ((0, 10 ** 9), *SIZES):
+        group = [r for r in rows if low <= r["pixels"] < high]
+        label = "all" if high == 10 ** 9 and low == 0 else (f"{low}-{high - 1} px" if high < 10 ** 9 else f"{low}+ px")
+        if group:
+            print(f"| {label} | {len(group)} | {sum(r['shipped'] for r in group) / len(group):.2f} | "
+                  f"{sum(r['oracle'] for r in group) / len(group):.2f} | {statistics.median(r['mark_pixels'] for r in group):.0f} | "
+                  f"{statistics.median(r['mark_rms'] for r in group):.2f} |")
+
+
 def summary(rows: list[dict]) -> None:
     def line(label: str, group: list[dict]) -> str:
         if not group:
@@ -144,6 +224,7 @@ def main() -> None:
     parser.add_argument("--part", default="0/1", help="I/N: read every N-th picture from the I-th")
     parser.add_argument("--set", action="append", default=[], metavar="MODULE.NAME=VALUE")
     parser.add_argument("--merge", nargs="+", type=Path)
+    parser.add_argument("--oracle", action="store_true", help="camera known only: as shipped and against the unmarked render")
     args = parser.parse_args()
     if args.merge:
         summary([json.loads(line) for path in args.merge for line in path.read_text().splitlines() if line.strip()])
@@ -152,6 +233,9 @@ def main() -> None:
         parser.error("--work is required")
     os.environ.setdefault("MESHSEAL_CACHE", str(args.work / "cache"))
     items = make_pictures(args.work, args.views, args.distances)
+    if args.oracle:
+        oracle(args.work, items, args.views, args.distances)
+        return
     part, parts = (int(v) for v in args.part.split("/"))
     read(items[part::parts], args.set)
 
