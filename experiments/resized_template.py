@@ -15,7 +15,10 @@ import argparse
 import json
 import math
 import statistics
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -34,35 +37,19 @@ def main() -> None:
 
     import meshseal
     import meshseal.reading.footprint as footprint
-    from meshseal import payload
-    from meshseal.data.dataset import MeshDataset, collate
+    from meshseal.data.dataset import MeshDataset
     from meshseal.evaluation.attacks import apply as attack_picture
-    from meshseal.methods.batches import batch_mark_grid, batch_texels_used, charted_item
-    from meshseal.render import MeshBatch, MeshRenderer
-    from meshseal.render.views import sample_views
-    from meshseal.training.views import random_backgrounds
+    from soft_decoding import marked_picture  # the same pictures as that experiment's
 
     watermarker = meshseal.load()
     encoder = watermarker.model
     dataset = MeshDataset(args.data, "test", seed=0)
     generator = torch.Generator().manual_seed(2_000_003)
-    renderer = MeshRenderer()
     attacks, sigmas = args.attacks.split(","), [float(s) for s in args.sigmas.split(",")]
     shipped = footprint.RESAMPLED_TEMPLATE_SIGMA
     rows = []
     for index in range(args.start, min(args.start + args.meshes, len(dataset))):
-        batch = charted_item(collate([dataset[index]]))
-        identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
-        message = payload.encode(identity, None, encoder.n_bits)[None]
-        positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
-        with torch.no_grad():
-            marked = encoder.texture_encoder(texture, message, 1.0, payload.key_seed(None),
-                                             batch_mark_grid(encoder.texture_encoder, batch), batch_texels_used(batch))
-            cameras, lights = sample_views(1, "seed", generator)
-            out = renderer(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights, 256, 256,
-                           random_backgrounds(1, generator))
-            picture = np.round(out.image.clamp(0, 1)[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
-        original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
+        picture, original, cameras, _ = marked_picture(encoder, dataset[index], generator)
         row = {"mesh": index}
         for number, attack in enumerate(attacks):
             hit = attack_picture(attack, picture, np.random.default_rng([0, index, 0, number]))

@@ -59,40 +59,51 @@ def likelier_than_truth(soft, identity: int) -> bool:
     return bool(len(others)) and float(others.max()) > own_correlation
 
 
-def pictures(data: Path, meshes: int, attacks: list[str], model: str) -> None:
+def marked_picture(encoder, item: dict, generator):
+    """A dataset item charted and marked by a spread model at strength 1 with a random ID, rendered by our
+    renderer from one seeded view of the seed's range at 256^2 over a random background: (the 8-bit
+    picture (H, W, 3), the original as a MeshBatch, the cameras, the ID). Draws from `generator`."""
     import torch
 
-    import meshseal
     from meshseal import payload
-    from meshseal.data.dataset import MeshDataset, collate
-    from meshseal.evaluation.attacks import apply as attack_picture
+    from meshseal.data.dataset import collate
     from meshseal.methods.batches import batch_mark_grid, batch_texels_used, charted_item
     from meshseal.render import MeshBatch, MeshRenderer
     from meshseal.render.views import sample_views
     from meshseal.training.views import random_backgrounds
 
+    batch = charted_item(collate([item]))
+    identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
+    message = payload.encode(identity, None, encoder.n_bits)[None]
+    positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
+    with torch.no_grad():
+        marked = encoder.texture_encoder(texture, message, 1.0, payload.key_seed(None),
+                                         batch_mark_grid(encoder.texture_encoder, batch), batch_texels_used(batch))
+        cameras, lights = sample_views(1, "seed", generator)
+        out = MeshRenderer()(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights, 256, 256,
+                             random_backgrounds(1, generator))
+        picture = np.round(out.image.clamp(0, 1)[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    return picture, MeshBatch.from_tensors(positions, normals, uvs, faces, texture), cameras, identity
+
+
+def pictures(data: Path, meshes: int, attacks: list[str], model: str) -> None:
+    import torch
+
+    import meshseal
+    from meshseal import payload
+    from meshseal.data.dataset import MeshDataset
+    from meshseal.evaluation.attacks import apply as attack_picture
+
     watermarker = meshseal.load(model)
     encoder = watermarker.model
     dataset = MeshDataset(data, "test", seed=0)
     generator = torch.Generator().manual_seed(2_000_003)
-    renderer = MeshRenderer()
     counts = {a: {False: {"right": 0, "wrong": 0, "failed": 0}, True: {"right": 0, "wrong": 0, "failed": 0}}
               for a in attacks}
     detected = {a: 0 for a in attacks}
     beyond = {a: 0 for a in attacks}  # failed reads where another codeword is likelier than the true one
     for index in range(min(meshes, len(dataset))):
-        batch = charted_item(collate([dataset[index]]))
-        identity = int(torch.randint(0, 2 ** 31, (1,), generator=generator))
-        message = payload.encode(identity, None, encoder.n_bits)[None]
-        positions, normals, uvs, faces, texture = (batch[k] for k in ("positions", "normals", "uvs", "faces", "texture"))
-        with torch.no_grad():
-            marked = encoder.texture_encoder(texture, message, 1.0, payload.key_seed(None),
-                                             batch_mark_grid(encoder.texture_encoder, batch), batch_texels_used(batch))
-            cameras, lights = sample_views(1, "seed", generator)
-            out = renderer(MeshBatch.from_tensors(positions, normals, uvs, faces, marked), cameras, lights, 256, 256,
-                           random_backgrounds(1, generator))
-            picture = np.round(out.image.clamp(0, 1)[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
-        original = MeshBatch.from_tensors(positions, normals, uvs, faces, texture)
+        picture, original, cameras, identity = marked_picture(encoder, dataset[index], generator)
         for number, name in enumerate(attacks):
             hit = picture if name == "none" else attack_picture(name, picture, np.random.default_rng([0, index, 0, number]))
             try:

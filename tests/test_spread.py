@@ -851,15 +851,23 @@ def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(t
     assert pickle.loads(pickle.dumps(result)).to_dict() == result.to_dict()
 
 
+def _halved_picture(marked, cameras, lights) -> torch.Tensor:
+    """A 256^2 8-bit render of `marked` halved as image tools resize (Pillow's bicubic) -> (1, 3, 128, 128)."""
+    import numpy as np
+    from PIL import Image
+
+    large = (MeshRenderer()(marked, cameras, lights, 256, 256).image[0].clamp(0, 1).permute(1, 2, 0) * 255).round()
+    halved = Image.fromarray(large.byte().numpy()).resize((128, 128), Image.Resampling.BICUBIC)
+    return torch.from_numpy(np.asarray(halved).astype(np.float32) / 255).permute(2, 0, 1)[None]
+
+
 def test_a_resized_picture_is_predicted_as_resized(monkeypatch):
     """A picture rendered at twice its size and resized (bicubic, as image tools resize) is predicted by
     the original rendered at that size and resized the same way, not by a Gaussian footprint; a
     luminance mark (whose reading the texture's resampled edges disturb most) reads better for it. A picture blurred as an engine samples keeps its Gaussian footprint."""
     import functools
 
-    import numpy as np
     import torch.nn.functional as F
-    from PIL import Image
 
     import meshseal.methods.spread as spread_module
     from meshseal.imaging import gaussian_blur
@@ -874,9 +882,7 @@ def test_a_resized_picture_is_predicted_as_resized(monkeypatch):
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
     signs = 2 * message - 1
     with torch.no_grad():
-        large = (MeshRenderer()(marked, cameras, lights, 256, 256).image[0].clamp(0, 1).permute(1, 2, 0) * 255).round()
-        halved = Image.fromarray(large.byte().numpy()).resize((128, 128), Image.Resampling.BICUBIC)
-        picture = torch.from_numpy(np.asarray(halved).astype(np.float32) / 255).permute(2, 0, 1)[None]
+        picture = _halved_picture(marked, cameras, lights)
         found = picture_footprint(original, relit_residual(original, picture, cameras), cameras, 128, 128)
         assert float(found.resized[0]) == 0.5
         fine = MeshRenderer()(marked, cameras, lights, 512, 512).image
@@ -894,9 +900,6 @@ def test_a_picture_read_again_keeps_the_footprint_its_first_reading_found():
     """A second look reads the same picture tensor under other cameras: the footprint found the first
     time is kept (`footprint.chosen_before`), so the reading under the same camera is the same and no
     search runs again; another tensor holding the same pixels searches anew."""
-    import numpy as np
-    from PIL import Image
-
     from meshseal.methods.spread import spread_evidence
     from meshseal.reading import footprint
 
@@ -905,9 +908,7 @@ def test_a_picture_read_again_keeps_the_footprint_its_first_reading_found():
     model, message, original, marked = _original_and_marked_batches(grey)
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
     with torch.no_grad():
-        large = (MeshRenderer()(marked, cameras, lights, 256, 256).image[0].clamp(0, 1).permute(1, 2, 0) * 255).round()
-        halved = Image.fromarray(large.byte().numpy()).resize((128, 128), Image.Resampling.BICUBIC)
-        picture = torch.from_numpy(np.asarray(halved).astype(np.float32) / 255).permute(2, 0, 1)[None]
+        picture = _halved_picture(marked, cameras, lights)
         first = spread_evidence(model, original, picture, cameras)
         assert footprint.chosen_before(picture) == (footprint.RESAMPLED_TEMPLATE_SIGMA, 0.5)  # a resized picture's footprint
         searched = []
@@ -1234,9 +1235,6 @@ def test_a_resized_pictures_template_is_narrower_than_the_pixels_own_blur(monkey
     blurred by `RESAMPLED_TEMPLATE_SIGMA` (0.25 px): the antialiased bicubic filter's core is sharper
     than its width suggests, and the mark's soft bits agree with their signs more than under the 0.5 px
     blur read before."""
-    import numpy as np
-    from PIL import Image
-
     import meshseal.reading.footprint as footprint
     from meshseal.methods.spread import spread_evidence
     from meshseal.models.spread import soft_bits
@@ -1246,9 +1244,7 @@ def test_a_resized_pictures_template_is_narrower_than_the_pixels_own_blur(monkey
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
     signs = 2 * message - 1
     with torch.no_grad():
-        large = (MeshRenderer()(marked, cameras, lights, 256, 256).image[0].clamp(0, 1).permute(1, 2, 0) * 255).round()
-        halved = Image.fromarray(large.byte().numpy()).resize((128, 128), Image.Resampling.BICUBIC)
-        picture = torch.from_numpy(np.asarray(halved).astype(np.float32) / 255).permute(2, 0, 1)[None]
+        picture = _halved_picture(marked, cameras, lights)
         narrow = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
         monkeypatch.setattr(footprint, "RESAMPLED_TEMPLATE_SIGMA", 0.5)
         wide = soft_bits(model.texture_encoder, spread_evidence(model, original, picture.clone(), cameras))
