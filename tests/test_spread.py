@@ -1249,3 +1249,27 @@ def test_a_resized_pictures_template_is_narrower_than_the_pixels_own_blur(monkey
         monkeypatch.setattr(footprint, "RESAMPLED_TEMPLATE_SIGMA", 0.5)
         wide = soft_bits(model.texture_encoder, spread_evidence(model, original, picture.clone(), cameras))
     assert float((narrow * signs).mean()) > 1.03 * float((wide * signs).mean()) > 0
+
+
+def test_an_area_footprints_template_is_narrower_than_the_blur_it_predicts_with(monkeypatch):
+    """A picture whose pixels average the surface over their area, blurred as an engine's pixel filter
+    blurs it, is predicted under that area footprint, and read with a template blurred half as much
+    (`AREA_TEMPLATE_SCALE`): its soft bits agree with their signs more than under the full blur."""
+    import torch.nn.functional as F
+
+    import meshseal.methods.spread as spread_module
+    from meshseal.imaging import gaussian_blur
+    from meshseal.methods.spread import spread_evidence
+    from meshseal.models.spread import soft_bits
+
+    assert spread_module.AREA_TEMPLATE_SCALE == 0.5
+    model, message, original, marked = _original_and_marked_batches(SPREAD)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
+    signs = 2 * message - 1
+    with torch.no_grad():
+        fine = MeshRenderer()(marked, cameras, lights, 512, 512).image
+        picture = _quantise(F.avg_pool2d(gaussian_blur(fine, 2.0), 4))
+        narrow = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
+        monkeypatch.setattr(spread_module, "AREA_TEMPLATE_SCALE", 1.0)
+        full = soft_bits(model.texture_encoder, spread_evidence(model, original, picture.clone(), cameras))
+    assert float((narrow * signs).mean()) > 1.03 * float((full * signs).mean()) > 0

@@ -10,7 +10,7 @@ import torch
 
 from ..imaging import gaussian_blur
 from ..models import WatermarkModel
-from ..reading.footprint import picture_footprint, take_off_linear_light
+from ..reading.footprint import AREA_TEMPLATE_SCALE, picture_footprint, take_off_linear_light
 from ..reading.relight import relit_residual
 from ..render import (
     Cameras,
@@ -201,7 +201,10 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         canvas = whitened.new_zeros(n_images * height * width).index_copy(0, pixel, whitened * ~at_point)
         canvas = canvas.reshape(n_images, 1, height, width)
         for index in torch.nonzero(~point).squeeze(1).tolist():
-            canvas[index] = gaussian_blur(canvas[index: index + 1], float(sampled.sigma[index]))[0]
+            resized = sampled.resized is not None and not bool(sampled.resized[index].isnan())
+            # a resized picture's template blur is its own; an area footprint's blur is narrowed for the template
+            width = float(sampled.sigma[index]) * (1.0 if resized else AREA_TEMPLATE_SCALE)
+            canvas[index] = gaussian_blur(canvas[index: index + 1], width)[0]
         fragments = sampled.fragments
         spread = canvas.reshape(-1).index_select(0, sampled.parent) / sampled.scale ** 2  # the adjoint of the mean
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)

@@ -20,6 +20,7 @@ from .relight import RelitResidual
 FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
 RESAMPLED = (0.5, 0.75, 1.5)  # a picture rendered at 1/factor its size and resized (bicubic, antialiased)
 RESAMPLED_TEMPLATE_SIGMA = 0.25  # px: the area footprint whose template reads a resized picture (docs/reading.md)
+AREA_TEMPLATE_SCALE = 0.5  # the template of a picture read under a blurred area footprint: that blur times this (docs/reading.md)
 RESAMPLED_LARGEST = 1024  # px: no resized prediction is rendered larger than this a side
 LINEAR_LIGHT_SIGMA = 2.0  # px: window of the residual's variance along and across light added in linear light
 LINEAR_LIGHT_RATIO = 1.0  # taken off fully where the variance along it is this many times that across
