@@ -172,7 +172,7 @@ def _settings(bpy, scene: dict, width: int, height: int) -> None:
     render_scene.view_settings.look = "None"
     render_scene.render.threads_mode = "FIXED"
     render_scene.render.threads = int(scene["threads"])
-    render_scene.render.dither_intensity = float(scene["dither"]) if "dither" in scene else 1.0
+    render_scene.render.dither_intensity = float(scene["dither"])
     samples = int(scene["samples"])
     if engine == "cycles":
         render_scene.cycles.device = "CPU"
@@ -185,10 +185,10 @@ def _settings(bpy, scene: dict, width: int, height: int) -> None:
         render_scene.eevee.taa_render_samples = samples
     else:
         shading = render_scene.display.shading
-        shading.light = str(scene["workbench_light"]) if "workbench_light" in scene else "STUDIO"
-        shading.show_specular_highlight = bool(scene["workbench_specular"]) if "workbench_specular" in scene else True
+        shading.light = str(scene["workbench_light"])
+        shading.show_specular_highlight = bool(scene["workbench_specular"])
         shading.color_type = "TEXTURE"
-        render_scene.display.render_aa = str(scene["antialiasing"]) if "antialiasing" in scene else "8"
+        render_scene.display.render_aa = str(scene["antialiasing"])
 
 
 def main(scene_path: str, out_dir: str) -> int:
