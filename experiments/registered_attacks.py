@@ -1,6 +1,6 @@
 """The registered rows of `meshseal eval --register --attacks ...` on a slice of the test split, so that
 100 meshes run as two processes on two cores: the test meshes [start, start + meshes), one seeded 256^2
-view each, marked as `meshseal embed` marks (FLIP budget 0.03), saved without metadata and read as
+view each, marked as `meshseal embed` marks (FLIP budget 0.03; `--strength S`: as `embed --strength S` marks), saved without metadata and read as
 `meshseal detect` reads them (registered, second look), as PNG and after each picture attack; each
 slice draws its own views and messages from the seed, so a slice's pictures are not those of a single
 run over all meshes. `--merge` adds slices up: per attack the pictures, detected, exact, named, the
@@ -8,7 +8,7 @@ detected rate with the camera known (where the attack keeps the frame) and the m
 detected rates by kind of picture (plain, magnified, minified, clipped, small).
 
     python experiments/registered_attacks.py --data data --start 0 --meshes 50 --json A.json
-        [--attacks none,jpeg90,jpeg75,jpeg50,webp80,resize0.5,resize0.75,resize1.5,crop0.8,screenshot]
+        [--attacks none,jpeg90,jpeg75,jpeg50,webp80,resize0.5,resize0.75,resize1.5,crop0.8,screenshot] [--strength S]
     python experiments/registered_attacks.py --merge A.json B.json
 """
 
@@ -39,15 +39,19 @@ def run(args) -> None:
     dataset = _Subset(test, list(range(args.start, min(args.start + args.meshes, len(test)))))
     torch.manual_seed(0)
     attacks = [name for name in parse(args.attacks) if name != "none"]
+    louder = {} if args.strength is None else {"strength": args.strength, "max_flip": None}  # as `embed --strength`
     result = evaluate_registered(model, dataset, len(dataset), args.seed, 256, "seed", None, views=1,
-                                 register=True, attacks=attacks)
+                                 register=True, attacks=attacks, by_item=args.by_item, **louder)
     rows = {"none": {"pictures": result["n_meshes"], "detected": result["tpr"], "exact": result["exact_message"],
                      "named": result["tpr_message_named"], "bit_acc": result["bit_acc"],
                      "detected_known_camera": result["tpr_known_camera"], "seconds": result["seconds_per_picture"]}}
     for name, entry in result.get("attacks", {}).items():
         rows[name] = {"pictures": entry["pictures"], "seconds": entry["seconds"],
                       "detected_known_camera": entry.get("detected_known_camera")} | {k: entry[k] for k in FIELDS}
-    payload = {"start": args.start, "meshes": len(dataset), "rows": rows, "by_kind": result.get("by_kind", {})}
+    payload = {"start": args.start, "meshes": len(dataset), "strength": args.strength, "rows": rows,
+               "by_kind": result.get("by_kind", {}), "by_item": result.get("by_item", {}),
+               "visibility": {key: result.get(key) for key in ("flip_object", "flip_object_p95", "psnr_object",
+                                                               "psnr_texture_shown")}}
     Path(args.json).write_text(json.dumps(payload, indent=1))
     print(json.dumps(payload))
 
@@ -58,6 +62,15 @@ def merge(paths: list[str]) -> None:
     names = list(dict.fromkeys(name for part in slices for name in part["rows"]))
     spans = ", ".join(f"{part['start']}-{part['start'] + part['meshes'] - 1}" for part in slices)
     print(f"<!-- test meshes: {spans} -->")
+    strengths = {part.get("strength") for part in slices}
+    seen = [part["visibility"] for part in slices if part.get("visibility", {}).get("flip_object") is not None]
+    if seen:
+        weights = [part["meshes"] for part in slices if part.get("visibility", {}).get("flip_object") is not None]
+        average = lambda key: sum(v[key] * w for v, w in zip(seen, weights)) / sum(weights)  # noqa: E731
+        print(f"strength {', '.join('budget' if s is None else f'{s:g}' for s in strengths)}: object FLIP "
+              f"{average('flip_object'):.4f} (p95 of the slices' {max(v['flip_object_p95'] for v in seen):.4f}), "
+              f"object PSNR {average('psnr_object'):.1f} dB, texture PSNR {average('psnr_texture_shown'):.1f} dB "
+              f"over the shown texels\n")
     print("| attack | pictures | detected | exact | named | bit accuracy | detected, camera known | seconds a picture |")
     print("|---|---|---|---|---|---|---|---|")
     for name in names:
@@ -94,6 +107,11 @@ def main() -> None:
     parser.add_argument("--attacks", default=ATTACKS)
     parser.add_argument("--model", default="default")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--strength", type=float, default=None,
+                        help="mark at this strength as `meshseal embed --strength` does (no FLIP budget); "
+                             "not given: strength 1 within the FLIP budget, as `embed` marks")
+    parser.add_argument("--by-item", action="store_true",
+                        help="also each mesh's figures (`by_item`: detected registered and with the camera, per attack)")
     parser.add_argument("--json", default=None)
     parser.add_argument("--merge", nargs="+", default=None)
     args = parser.parse_args()

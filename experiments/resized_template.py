@@ -1,4 +1,4 @@
-"""The matched filter's template for a resized picture (`reading.footprint.RESAMPLED_TEMPLATE_SIGMA`): the
+"""The matched filter's template for a resized picture (`reading.footprint.RESAMPLED_ADJOINT`, `RESAMPLED_TEMPLATE_SIGMA`): the
 test meshes [start, start + meshes) of a built dataset, one seeded 256^2 view each, marked by the shipped
 default at strength 1 with a random ID (as experiments/soft_decoding.py marks them), resized by each
 attack and read with the camera known under each template sigma. Per attack and sigma: the pictures
@@ -6,7 +6,11 @@ detected at FPR 1e-6; per attack, against the first sigma given, how many read a
 median log10 ratio of the p-values (the evidence's strength, below the detection threshold too).
 
     python experiments/resized_template.py --data data --start 0 --meshes 160 \
-        [--attacks resize0.5,resize0.75,resize1.5] [--sigmas 0.5,0.25,0.15]
+        [--attacks resize0.5,resize0.75,resize1.5] [--sigmas 0.5,0.25,0.15,adjoint]
+
+The sigma `adjoint` reads with the resize's own adjoint (`footprint.RESAMPLED_ADJOINT`, shipped: the
+residual carried back through the bicubic resize onto the source render's pixels); a number reads with
+the pixel's area blurred by that many pixels instead.
 """
 
 from __future__ import annotations
@@ -45,8 +49,8 @@ def main() -> None:
     encoder = watermarker.model
     dataset = MeshDataset(args.data, "test", seed=0)
     generator = torch.Generator().manual_seed(2_000_003)
-    attacks, sigmas = args.attacks.split(","), [float(s) for s in args.sigmas.split(",")]
-    shipped = footprint.RESAMPLED_TEMPLATE_SIGMA
+    attacks, sigmas = args.attacks.split(","), args.sigmas.split(",")
+    shipped = footprint.RESAMPLED_TEMPLATE_SIGMA, footprint.RESAMPLED_ADJOINT
     rows = []
     for index in range(args.start, min(args.start + args.meshes, len(dataset))):
         picture, original, cameras, _ = marked_picture(encoder, dataset[index], generator)
@@ -54,24 +58,27 @@ def main() -> None:
         for number, attack in enumerate(attacks):
             hit = attack_picture(attack, picture, np.random.default_rng([0, index, 0, number]))
             for sigma in sigmas:
-                footprint.RESAMPLED_TEMPLATE_SIGMA = sigma
+                if sigma == "adjoint":  # the resize's own adjoint (`footprint.RESAMPLED_ADJOINT`)
+                    footprint.RESAMPLED_ADJOINT = True
+                else:
+                    footprint.RESAMPLED_TEMPLATE_SIGMA, footprint.RESAMPLED_ADJOINT = float(sigma), False
                 try:
                     found = watermarker.decide([watermarker.read(hit.astype(np.float32) / 255.0, original, camera=cameras)])
-                    row[f"{attack}@{sigma:g}"] = (bool(found.detected), float(found.p_value))
+                    row[f"{attack}@{sigma}"] = (bool(found.detected), float(found.p_value))
                 except meshseal.MeshsealError:
-                    row[f"{attack}@{sigma:g}"] = (False, 1.0)
+                    row[f"{attack}@{sigma}"] = (False, 1.0)
                 finally:
-                    footprint.RESAMPLED_TEMPLATE_SIGMA = shipped
+                    footprint.RESAMPLED_TEMPLATE_SIGMA, footprint.RESAMPLED_ADJOINT = shipped
         rows.append(row)
         print(json.dumps(row), flush=True)
     print(f"\nfirst {len(rows)} test meshes from {args.start}, one view each, camera known, FPR 1e-6\n")
-    print("| attack | " + " | ".join(f"sigma {s:g}: detected" for s in sigmas) + " | "
-          + " | ".join(f"sigma {s:g} against {sigmas[0]:g}: lower p / median log10 ratio" for s in sigmas[1:]) + " |")
+    print("| attack | " + " | ".join(f"template {s}: detected" for s in sigmas) + " | "
+          + " | ".join(f"template {s} against {sigmas[0]}: lower p / median log10 ratio" for s in sigmas[1:]) + " |")
     print("|---|" + "---|" * (2 * len(sigmas) - 1))
     for attack in attacks:
-        cells = [str(sum(r[f"{attack}@{s:g}"][0] for r in rows)) for s in sigmas]
+        cells = [str(sum(r[f"{attack}@{s}"][0] for r in rows)) for s in sigmas]
         for sigma in sigmas[1:]:
-            pairs = [(r[f"{attack}@{sigma:g}"][1], r[f"{attack}@{sigmas[0]:g}"][1]) for r in rows]
+            pairs = [(r[f"{attack}@{sigma}"][1], r[f"{attack}@{sigmas[0]}"][1]) for r in rows]
             ratios = [math.log10(a) - math.log10(b) for a, b in pairs if a > 0 and b > 0]
             cells.append(f"{sum(a < b * 0.999 for a, b in pairs)} / {statistics.median(ratios):.2f}" if ratios else "-")
         print(f"| {attack} | " + " | ".join(cells) + " |")

@@ -851,13 +851,15 @@ def test_a_registered_reading_leaves_a_worker_without_what_a_second_look_needs(t
     assert pickle.loads(pickle.dumps(result)).to_dict() == result.to_dict()
 
 
-def _halved_picture(marked, cameras, lights) -> torch.Tensor:
-    """A 256^2 8-bit render of `marked` halved as image tools resize (Pillow's bicubic) -> (1, 3, 128, 128)."""
+def _halved_picture(marked, cameras, lights, factor: float = 0.5) -> torch.Tensor:
+    """A 256^2 8-bit render of `marked` halved (or resized by `factor`) as image tools resize (Pillow's
+    bicubic) -> (1, 3, 128, 128) (at 0.5)."""
     import numpy as np
     from PIL import Image
 
     large = (MeshRenderer()(marked, cameras, lights, 256, 256).image[0].clamp(0, 1).permute(1, 2, 0) * 255).round()
-    halved = Image.fromarray(large.byte().numpy()).resize((128, 128), Image.Resampling.BICUBIC)
+    side = round(256 * factor)
+    halved = Image.fromarray(large.byte().numpy()).resize((side, side), Image.Resampling.BICUBIC)
     return torch.from_numpy(np.asarray(halved).astype(np.float32) / 255).permute(2, 0, 1)[None]
 
 
@@ -1230,25 +1232,52 @@ def test_a_picture_shaded_in_linear_light_is_predicted_in_linear_light(monkeypat
     assert z[True][1] > 1.3 * z[False][1] and z[True][1] > 10.0
 
 
-def test_a_resized_pictures_template_is_narrower_than_the_pixels_own_blur(monkeypatch):
-    """A halved picture (bicubic, as image tools resize) is read with the template of the pixel's area
-    blurred by `RESAMPLED_TEMPLATE_SIGMA` (0.25 px): the antialiased bicubic filter's core is sharper
-    than its width suggests, and the mark's soft bits agree with their signs more than under the 0.5 px
-    blur read before."""
+def test_the_resize_adjoint_carries_values_back_as_the_resize_weighed_them():
+    """`resized_adjoint` is the transpose of the bicubic, antialiased resize `resampled_prediction`
+    makes: <resize(x), y> = <x, adjoint(y)> for any x on the source pixels and y on the picture's, at
+    each factor the reading tries; its output has the source render's size."""
+    import torch.nn.functional as F
+
+    from meshseal.reading.footprint import RESAMPLED, resized_adjoint, resized_source_size
+
+    generator = torch.Generator().manual_seed(3)
+    for factor in RESAMPLED:
+        y = torch.randn(2, 1, 96, 80, generator=generator, dtype=torch.float64)
+        size = resized_source_size(96, 80, factor)
+        x = torch.randn(2, 1, *size, generator=generator, dtype=torch.float64)
+        resized = F.interpolate(x, size=(96, 80), mode="bicubic", antialias=True, align_corners=False)
+        back = resized_adjoint(y, factor)
+        assert back.shape == x.shape
+        assert torch.allclose((resized * y).sum(), (x * back).sum(), rtol=1e-10)
+        assert float(back.abs().sum()) > 0
+
+
+def test_a_resized_picture_is_read_through_its_resizes_adjoint(monkeypatch):
+    """A picture enlarged 1.5 times (bicubic, as image tools resize) is read with the resize's own
+    adjoint as its template (`RESAMPLED_ADJOINT`: the residual carried back onto the source render's
+    pixels and summed per cell there): its soft bits agree with their signs more than under the
+    pixel's area blurred by `RESAMPLED_TEMPLATE_SIGMA`, which stood in for the bicubic filter before,
+    or by twice that. A halved picture reads at least as well as under the blur."""
     import meshseal.reading.footprint as footprint
     from meshseal.methods.spread import spread_evidence
     from meshseal.models.spread import soft_bits
 
-    assert footprint.RESAMPLED_TEMPLATE_SIGMA == 0.25
+    assert footprint.RESAMPLED_ADJOINT and footprint.RESAMPLED_TEMPLATE_SIGMA == 0.25
     model, message, original, marked = _original_and_marked_batches(SPREAD)
     cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
     signs = 2 * message - 1
-    with torch.no_grad():
-        picture = _halved_picture(marked, cameras, lights)
-        narrow = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
-        monkeypatch.setattr(footprint, "RESAMPLED_TEMPLATE_SIGMA", 0.5)
-        wide = soft_bits(model.texture_encoder, spread_evidence(model, original, picture.clone(), cameras))
-    assert float((narrow * signs).mean()) > 1.03 * float((wide * signs).mean()) > 0
+    for factor, margin in ((1.5, 1.03), (0.5, 1.0)):
+        with torch.no_grad():
+            picture = _halved_picture(marked, cameras, lights, factor)
+            adjoint = soft_bits(model.texture_encoder, spread_evidence(model, original, picture, cameras))
+            assert footprint.chosen_before(picture)[1] == factor  # read as resized by it
+            monkeypatch.setattr(footprint, "RESAMPLED_ADJOINT", False)
+            blurred = soft_bits(model.texture_encoder, spread_evidence(model, original, picture.clone(), cameras))
+            monkeypatch.setattr(footprint, "RESAMPLED_TEMPLATE_SIGMA", 0.5)
+            wider = soft_bits(model.texture_encoder, spread_evidence(model, original, picture.clone(), cameras))
+            monkeypatch.undo()
+        agreement = [float((bits * signs).mean()) for bits in (adjoint, blurred, wider)]
+        assert agreement[0] > margin * agreement[1] and agreement[0] > margin * agreement[2] > 0, (factor, agreement)
 
 
 def test_an_area_footprints_template_is_narrower_than_the_blur_it_predicts_with(monkeypatch):

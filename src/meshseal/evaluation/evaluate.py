@@ -313,6 +313,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
         for name, table in attacked.items():
             hit = [r for r in table if belongs(r)]
             entry[name] = mean("detected", hit) if hit else None
+            if hit and hit[0]["detected_known"] is not None:  # registered, the same pictures read with their camera
+                entry[f"{name}_known_camera"] = mean("detected_known", hit)
         return entry
 
     if coded:  # by kind of picture (`picture_kinds`)

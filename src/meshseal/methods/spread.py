@@ -10,6 +10,7 @@ import torch
 
 from ..imaging import gaussian_blur
 from ..models import WatermarkModel
+from ..reading import footprint as footprints
 from ..reading.footprint import AREA_TEMPLATE_SCALE, picture_footprint, take_off_linear_light
 from ..reading.relight import relit_residual
 from ..render import (
@@ -202,6 +203,11 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         canvas = canvas.reshape(n_images, 1, height, width)
         for index in torch.nonzero(~point).squeeze(1).tolist():
             resized = sampled.resized is not None and not bool(sampled.resized[index].isnan())
+            if resized and footprints.RESAMPLED_ADJOINT:  # the resize's own adjoint, on the source render's pixels
+                sums[index] += _resized_sums(encoder, masks, mesh, cameras[[index]], canvas[index: index + 1],
+                                             float(sampled.resized[index]), grids)[0]
+                canvas[index] = 0.0
+                continue
             # a resized picture's template blur is its own; an area footprint's blur is narrowed for the template
             width = float(sampled.sigma[index]) * (1.0 if resized else AREA_TEMPLATE_SCALE)
             canvas[index] = gaussian_blur(canvas[index: index + 1], width)[0]
@@ -210,6 +216,29 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         uv = interpolate(mesh.uvs.expand(n_images, -1, -1) if mesh.uvs.shape[0] == 1 else mesh.uvs, fragments)
         amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
         return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, grids)
+
+
+def _resized_sums(encoder, masks: list, mesh: MeshBatch, camera: Cameras, canvas: torch.Tensor, factor: float,
+                  grids: tuple[int, ...]) -> torch.Tensor:
+    """The matched filter's cell sums (1, sum C*C) of one picture found resized by `factor`: its
+    whitened residual on the picture's pixels (1, 1, H, W) carried back through the resize
+    (`footprint.resized_adjoint`) onto the pixels of the source render, and summed per cell at those
+    pixels' texture coordinates, as a picture read at its own size is (the splat's blur there left
+    out, as it is there: docs/reading.md). Picture and original only: no key."""
+    from ..models.spread import cell_sums
+    from ..render import rasterize, sample_textures
+    from ..render.renderer import per_fragment
+
+    source = footprints.resized_adjoint(canvas, factor)
+    height, width = source.shape[-2:]
+    positions = mesh.positions if mesh.positions.shape[0] == 1 else mesh.positions[:1]
+    fragments = rasterize(camera.to(positions.device, positions.dtype).world_to_clip(positions, width / height),
+                          mesh.faces[:1] if mesh.faces.dim() == 3 else mesh.faces, height, width)
+    values = source.reshape(-1).index_select(0, fragments.pixel)
+    uvs = mesh.uvs if mesh.uvs.shape[0] == 1 else mesh.uvs[:1]
+    uv = interpolate(uvs, fragments)
+    amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
+    return cell_sums(encoder, values * amplitude, uv, fragments.batch, 1, grids)
 
 
 def _linear_if_better(mesh, image, cameras, footprint, found, sampled, before, after, saved, pixel):

@@ -19,9 +19,10 @@ from .relight import RelitResidual
 
 FOOTPRINT_SIGMAS = (0.35, 0.5, 0.75, 1.0)
 RESAMPLED = (0.5, 0.75, 1.5)  # a picture rendered at 1/factor its size and resized (bicubic, antialiased)
-RESAMPLED_TEMPLATE_SIGMA = 0.25  # px: the area footprint whose template reads a resized picture (docs/reading.md)
+RESAMPLED_TEMPLATE_SIGMA = 0.25  # px: the area footprint that stands for a resized picture's filter (docs/reading.md)
 AREA_TEMPLATE_SCALE = 0.5  # the template of a picture read under a blurred area footprint: that blur times this (docs/reading.md)
 RESAMPLED_LARGEST = 1024  # px: no resized prediction is rendered larger than this a side
+RESAMPLED_ADJOINT = True  # a resized picture's template: the resize's own adjoint (else the area blurred as above)
 LINEAR_LIGHT_SIGMA = 2.0  # px: window of the residual's variance along and across light added in linear light
 LINEAR_LIGHT_RATIO = 1.0  # taken off fully where the variance along it is this many times that across
 LINEAR_LIGHT_DISTINCT = 0.05  # and where its direction differs this much (sine) from the brightness's
@@ -65,9 +66,27 @@ def resampled_prediction(relit: MeshBatch, cameras: Cameras, lights, height: int
     """The relit original as a picture rendered at 1/`factor` of `height` x `width` (point samples)
     and then resized to it, bicubic with antialiasing (as image tools resize: torch's filter matches
     Pillow's) -> (B, 3, H, W)."""
-    size = (max(8, round(height / factor)), max(8, round(width / factor)))
-    render = MeshRenderer()(relit, cameras, lights, *size).image
+    render = MeshRenderer()(relit, cameras, lights, *resized_source_size(height, width, factor)).image
     return F.interpolate(render, size=(height, width), mode="bicubic", antialias=True, align_corners=False)
+
+
+def resized_source_size(height: int, width: int, factor: float) -> tuple[int, int]:
+    """The size a picture of `height` x `width` had before it was resized by `factor`."""
+    return max(8, round(height / factor)), max(8, round(width / factor))
+
+
+def resized_adjoint(canvas: torch.Tensor, factor: float) -> torch.Tensor:
+    """The adjoint of `resampled_prediction`'s resize: values on the resized picture's pixels
+    (B, C, H, W) carried back onto the pixels of the picture before it (B, C, h, w), each weighted as
+    the bicubic, antialiased resize weighted it into the pixels it made. A residual so carried back
+    and summed per cell of the source render is the matched filter of a mark that the resize blurred
+    (the template is then the resize's own filter, not a Gaussian that stands in for it)."""
+    size = resized_source_size(canvas.shape[-2], canvas.shape[-1], factor)
+    with torch.enable_grad():
+        source = canvas.new_zeros(*canvas.shape[:2], *size, requires_grad=True)
+        resized = F.interpolate(source, size=canvas.shape[-2:], mode="bicubic", antialias=True, align_corners=False)
+        (back,) = torch.autograd.grad(resized, source, canvas)
+    return back
 
 
 POINT_ENOUGH = 2.0 / 255  # RMS of the fine detail point samples leave unexplained, under which they are taken
