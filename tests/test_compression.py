@@ -155,6 +155,39 @@ def test_codecs_a_file_gives_are_the_only_ones_tried(monkeypatch):
     assert chosen == [None] and tried == [] and torch.equal(kept, exact)
 
 
+def test_a_jpeg_read_first_under_a_poor_prediction_is_searched_again_and_a_lossless_picture_is_not(monkeypatch):
+    """A registered picture is read first under its registered camera, then (a second look) under
+    others on the same tensor. Where the first prediction was too far off for a codec to beat the
+    margin, yet one came closer to the picture than none, the next reading searches again (and finds
+    the JPEG under a good prediction); a lossless picture read under a good prediction, whose
+    candidates only add error there, stays decided: the next reading tries nothing."""
+    import meshseal.reading.compression as compression
+
+    _, pixel, uint8 = _scene()
+    exact = torch.from_numpy(uint8.reshape(-1, 3)[pixel.numpy()].astype(np.float32) / 255.0)
+    shifted = np.roll(uint8, 1, axis=1).reshape(-1, 3)[pixel.numpy()]  # the scene a pixel off, as an off camera's
+    poor = torch.from_numpy(shifted.astype(np.float32) / 255.0)
+    tried = []
+    real = compression._codec_round_trip
+    monkeypatch.setattr(compression, "_codec_round_trip", lambda p, codec: tried.append(codec) or real(p, codec))
+    picture = torch.from_numpy(apply("jpeg75", uint8, np.random.default_rng(0))).permute(2, 0, 1)[None].float() / 255.0
+    _, chosen = recompressed(picture, poor, pixel)
+    assert chosen == [None] and len(tried) == len(compression.CODECS)  # the first prediction: no codec taken
+    tried.clear()
+    _, chosen = recompressed(picture, exact, pixel)
+    assert chosen == [("JPEG", 75, 2)] and len(tried) == len(compression.CODECS)  # searched again: found
+    tried.clear()
+    _, chosen = recompressed(picture, poor, pixel)
+    assert chosen == [None] and tried == [("JPEG", 75, 2)]  # found once: only that one tried since
+    tried.clear()
+    lossless = torch.from_numpy(uint8).permute(2, 0, 1)[None].float() / 255.0
+    kept, chosen = recompressed(lossless, exact, pixel)
+    assert chosen == [None] and len(tried) == len(compression.CODECS) and torch.equal(kept, exact)
+    tried.clear()
+    kept, chosen = recompressed(lossless, poor, pixel)
+    assert chosen == [None] and tried == [] and torch.equal(kept, poor)  # decided: nothing tried again
+
+
 def test_a_rendered_png_reads_as_the_full_codec_search_reads_it_without_any_codec(tmp_path, monkeypatch):
     import meshseal
     import meshseal.reading.compression as compression

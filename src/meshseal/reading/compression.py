@@ -13,6 +13,7 @@ matched filter's null (z ~ N(0, 1) per bit) is unchanged.
 from __future__ import annotations
 
 import io
+import math
 
 import numpy as np
 import torch
@@ -79,6 +80,7 @@ def jpeg_phase(picture: np.ndarray) -> tuple[int, int]:
     return (phase(np.abs(np.diff(luma, axis=0)).mean(axis=1)), phase(np.abs(np.diff(luma, axis=1)).mean(axis=0)))
 
 
+SEARCH_AGAIN_BELOW = 1.0  # no codec taken, but one came this close (squared error over no codec's): searched again when read again
 PHASE_ABOVE = 1.3  # a block grid's phase stands out where its rows' (columns') steps are this much above the others'
 
 
@@ -144,7 +146,11 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     the picture over the object's pixels is kept where its squared error is under `margin` times no
     codec's (a clean picture whose prediction misfits a little is not taken for a re-encoded one).
     A picture read again (the same tensor, unchanged) tries only the codec found the first time, and
-    a picture whose codec its file gave (`expect`) only that one."""
+    a picture whose codec its file gave (`expect`) only that one; one where no codec was found is
+    searched again where one came closer to the picture than no codec (under SEARCH_AGAIN_BELOW times its
+    squared error) without beating `margin`: the first reading's camera may have been off, its
+    prediction too far from the picture for the codec's error to show (a registered JPEG's second look
+    read it as lossless). A lossless picture's candidates add their own error, so it stays decided."""
     known = _known(image)
     n_images, _, height, width = image.shape
     if known is not None and not any(known):  # every picture saved losslessly: nothing to try
@@ -157,36 +163,46 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     owner = pixel // (height * width)
     phases = _known(image, _PHASES)
     searched = phases is None
+    pictures = flat.reshape(n_images, height, width, 3).numpy()
     if searched:  # a picture read from a JPEG file holds its own grid; pixels may hold one elsewhere
-        pictures = flat.reshape(n_images, height, width, 3).numpy()
         phases = [(0, 0) if known is not None else jpeg_phase(pictures[index]) for index in range(n_images)]
-    found_phases = []
+    again = [phase is None for phase in phases]  # found nothing before: its grid searched again too
+    phases = [jpeg_phase(pictures[index]) if again[index] else phase for index, phase in enumerate(phases)]
+    found_phases, undecided = [], []
     for index in range(n_images):
         mine = owner == index
         if not bool(mine.any()):
             chosen.append(None)
             found_phases.append((0, 0))
+            undecided.append(False)
             continue
         local = (pixel[mine] % (height * width)).cpu().numpy()
         seen = flat.reshape(n_images, height * width, 3)[index, local].numpy().astype(np.float64) * 255.0
         plain = canvas[index].reshape(-1, 3)[local].astype(np.float64)
-        best, best_error, best_phase = None, float(((seen - plain) ** 2).sum()) * margin, (0, 0)
+        plain_error = float(((seen - plain) ** 2).sum())
+        best, best_error, best_phase, closest = None, plain_error * margin, (0, 0), math.inf
         # The grid where the picture's corner is, and where `jpeg_phase` saw one (if elsewhere): whichever fits.
-        tries = [phases[index]] if not searched else list(dict.fromkeys([(0, 0), phases[index]]))
+        tries = [phases[index]] if not (searched or again[index]) else list(dict.fromkeys([(0, 0), phases[index]]))
         for codec in (codecs if known is None else known[index]):
             for phase in (tries if codec[0] == "JPEG" else [(0, 0)]):
                 trial = _round_trip_at(canvas[index], codec, phase).reshape(-1, 3)[local].astype(np.float64)
                 error = float(((seen - trial) ** 2).sum())
+                closest = min(closest, error / max(plain_error, 1e-12))
                 if error < best_error:
                     best, best_error, values, best_phase = codec, error, trial, phase
         chosen.append(best)
-        found_phases.append(best_phase)
+        # none taken, yet one explained the picture better than none did: searched again next time
+        undecided.append(best is None and (known is None or again[index]) and closest < SEARCH_AGAIN_BELOW)
+        found_phases.append(None if undecided[-1] else best_phase)
         if best is not None:
             out[mine] = torch.from_numpy(values / 255.0).to(out)
-    if searched:  # the grid each picture's codec fitted at, for a second look and the quantiser read
+    if searched or any(again):  # the grid each picture's codec fitted at, for a second look and the quantiser read
         keep_with(image, _PHASES, found_phases)
-    if known is None:
-        _remember(image, [[] if codec is None else [codec] for codec in chosen])
+    if known is None or any(again):  # what was found is kept; an undecided picture is searched again
+        previous = known if known is not None else [None] * n_images
+        _remember(image, [list(codecs) if undecided[index] else [codec] if codec is not None
+                          else [] if previous[index] is None or again[index] else previous[index]
+                          for index, codec in enumerate(chosen)])
     return out, chosen
 
 
