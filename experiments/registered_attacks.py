@@ -10,6 +10,9 @@ detected rates by kind of picture (plain, magnified, minified, clipped, small).
     python experiments/registered_attacks.py --data data --start 0 --meshes 50 --json A.json
         [--attacks none,jpeg90,jpeg75,jpeg50,webp80,resize0.5,resize0.75,resize1.5,crop0.8,screenshot] [--strength S]
     python experiments/registered_attacks.py --merge A.json B.json
+
+`--by-item` keeps each mesh's figures in the JSON (`by_item`: detected registered and, where the
+attack keeps the frame, with the camera known), so that the pictures registration loses can be named.
 """
 
 from __future__ import annotations
