@@ -6,7 +6,7 @@ detected at FPR 1e-6; per attack, against the first sigma given, how many read a
 median log10 ratio of the p-values (the evidence's strength, below the detection threshold too).
 
     python experiments/resized_template.py --data data --start 0 --meshes 160 \
-        [--attacks resize0.5,resize0.75,resize1.5] [--sigmas 0.5,0.25,0.15,adjoint]
+        [--attacks resize0.5,resize0.75,resize1.5] [--sigmas 0.25,adjoint]  (any of 0.5, 0.25, 0.15, adjoint)
 
 The sigma `adjoint` reads with the resize's own adjoint (`footprint.RESAMPLED_ADJOINT`, shipped: the
 residual carried back through the bicubic resize onto the source render's pixels); a number reads with
@@ -31,7 +31,7 @@ def main() -> None:
     parser.add_argument("--start", type=int, default=0)
     parser.add_argument("--meshes", type=int, default=160)
     parser.add_argument("--attacks", default="resize0.5,resize0.75,resize1.5")
-    parser.add_argument("--sigmas", default="0.5,0.25,0.15")
+    parser.add_argument("--sigmas", default="0.25,adjoint")
     args = parser.parse_args()
     from meshseal.threads import configure
 
