@@ -204,7 +204,7 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         for index in torch.nonzero(~point).squeeze(1).tolist():
             resized = sampled.resized is not None and not bool(sampled.resized[index].isnan())
             if resized and footprints.RESAMPLED_ADJOINT:  # the resize's own adjoint, on the source render's pixels
-                sums[index] += _resized_sums(encoder, masks, mesh, cameras[[index]], canvas[index: index + 1],
+                sums[index] += _resized_sums(encoder, masks, mesh, index, cameras[[index]], canvas[index: index + 1],
                                              float(sampled.resized[index]), grids)[0]
                 canvas[index] = 0.0
                 continue
@@ -218,26 +218,28 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         return sums + cell_sums(encoder, spread * amplitude, uv, fragments.batch, n_images, grids)
 
 
-def _resized_sums(encoder, masks: list, mesh: MeshBatch, camera: Cameras, canvas: torch.Tensor, factor: float,
-                  grids: tuple[int, ...]) -> torch.Tensor:
+def _resized_sums(encoder, masks: list, mesh: MeshBatch, index: int, camera: Cameras, canvas: torch.Tensor,
+                  factor: float, grids: tuple[int, ...]) -> torch.Tensor:
     """The matched filter's cell sums (1, sum C*C) of one picture found resized by `factor`: its
     whitened residual on the picture's pixels (1, 1, H, W) carried back through the resize
     (`footprint.resized_adjoint`) onto the pixels of the source render, and summed per cell at those
     pixels' texture coordinates, as a picture read at its own size is (the splat's blur there left
-    out, as it is there: docs/reading.md). Picture and original only: no key."""
+    out, as it is there: docs/reading.md). `index`: the picture's mesh where `mesh` holds one per
+    picture. Picture and original only: no key."""
     from ..models.spread import cell_sums
     from ..render import rasterize, sample_textures
     from ..render.renderer import per_fragment
 
     source = footprints.resized_adjoint(canvas, factor)
     height, width = source.shape[-2:]
-    positions = mesh.positions if mesh.positions.shape[0] == 1 else mesh.positions[:1]
+    own = lambda table: table if table.shape[0] == 1 else table[index: index + 1]  # noqa: E731 (this picture's mesh)
+    positions = own(mesh.positions)
     fragments = rasterize(camera.to(positions.device, positions.dtype).world_to_clip(positions, width / height),
-                          mesh.faces[:1] if mesh.faces.dim() == 3 else mesh.faces, height, width)
+                          own(mesh.faces) if mesh.faces.dim() == 3 else mesh.faces, height, width)
     values = source.reshape(-1).index_select(0, fragments.pixel)
-    uvs = mesh.uvs if mesh.uvs.shape[0] == 1 else mesh.uvs[:1]
-    uv = interpolate(uvs, fragments)
-    amplitude = sample_textures(masks, uv, per_fragment(mesh.face_material, fragments)).norm(dim=1)
+    uv = interpolate(own(mesh.uvs), fragments)
+    material = own(mesh.face_material) if mesh.face_material.dim() == 2 else mesh.face_material
+    amplitude = sample_textures(masks, uv, per_fragment(material, fragments)).norm(dim=1)
     return cell_sums(encoder, values * amplitude, uv, fragments.batch, 1, grids)
 
 

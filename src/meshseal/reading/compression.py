@@ -199,10 +199,15 @@ def recompressed(image: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     if searched or any(again):  # the grid each picture's codec fitted at, for a second look and the quantiser read
         keep_with(image, _PHASES, found_phases)
     if known is None or any(again):  # what was found is kept; an undecided picture is searched again
-        previous = known if known is not None else [None] * n_images
-        _remember(image, [list(codecs) if undecided[index] else [codec] if codec is not None
-                          else [] if previous[index] is None or again[index] else previous[index]
-                          for index, codec in enumerate(chosen)])
+        kept = []
+        for index, codec in enumerate(chosen):
+            if undecided[index]:
+                kept.append(list(codecs))
+            elif codec is not None or known is None or again[index]:
+                kept.append([] if codec is None else [codec])
+            else:  # decided before, and no codec needed here
+                kept.append(known[index])
+        _remember(image, kept)
     return out, chosen
 
 
