@@ -363,3 +363,25 @@ def test_object_mask_keeps_the_half_covered_pixels_of_an_antialiased_edge():
     columns = np.arange(96)[None]
     on_bar = (np.abs(np.arange(96)[:, None] - 0.35 * columns - 60.2) < 0.5) & (columns > 22) & (columns < 83)
     assert mask[on_bar].mean() > 0.9  # the bar stays
+
+
+def test_reading_runs_under_inference_mode_and_leaves_later_renders_differentiable():
+    """A reading runs under torch.inference_mode (no version counters, no view tracking: a reading is
+    thousands of small operations); what it caches on the way (the splat's kernels) must not stop a
+    later render in the same process from taking gradients, and a reading's caches keyed on a
+    picture still serve a second reading of the same tensor (`reading.kept`)."""
+    import meshseal
+
+    watermarker = meshseal.load()
+    mesh = _bunny()
+    cameras, lights = _view()
+    with torch.no_grad():
+        picture = MeshRenderer()(mesh, cameras, lights, 96, 96).image[0]
+    original = watermarker.original(FIXTURES / "bunny.glb")
+    first = watermarker.read(picture, original, camera=cameras)
+    again = watermarker.read(picture, original, camera=cameras)
+    assert first.evidence.is_inference() and torch.equal(first.evidence, again.evidence)
+    texture = mesh.textures[0].clone().requires_grad_(True)
+    image = MeshRenderer()(replace(mesh, textures=[texture]), cameras, lights, 96, 96).image
+    image.sum().backward()
+    assert texture.grad is not None and float(texture.grad.abs().sum()) > 0

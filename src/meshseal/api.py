@@ -159,7 +159,9 @@ class Watermarker:
         return self.method.mark_grid(mesh)
 
     # ------------------------------------------------------------ detect
-    @torch.no_grad()
+    # Reading runs under inference mode: no gradient flows, and torch then skips the version counters
+    # and view tracking of every one of a reading's thousands of small operations.
+    @torch.inference_mode()
     def detect(self, images, mesh=None, *, key: str | bytes | None = None, expect=None, pool: bool = False,
                register: bool = False, fov_y: float = 60.0, quick: bool = False):
         """Read pictures (paths, PIL images, arrays, tensors; one or a list) of a marked mesh.
@@ -222,11 +224,13 @@ class Watermarker:
         prepare it once to detect many pictures of it."""
         return self.method.prepare(mesh)
 
+    @torch.inference_mode()
     def read(self, image, original, register: bool = False, fov_y: float = 60.0, camera=None,
              quick: bool = False) -> Reading:
         """One picture's evidence, before any decision (`reading.read.Reader.read`)."""
         return self.reader.read(image, original, register, fov_y, camera, quick)
 
+    @torch.inference_mode()
     def look_again(self, reading: Reading, original, key=None, expect=None, search: bool = True) -> Reading:
         """A registered reading looked at again where its mark is not found (`reading.second_look`)."""
         return look_again(self.reader, reading, original, key, expect, search)

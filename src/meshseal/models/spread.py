@@ -39,6 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..versions import version as version_of
+
 USED_RESOLUTION = 1024  # `texels_used` works at most this many texels a side
 READ_BOTH_BELOW = 1.1  # detection reads both grids up to this many times the embedding's threshold
 PIXEL_AT_OBJECT = 2 * 3.5 * math.tan(math.radians(30)) / 256  # a 256^2 picture's pixel at a radius-1 object 3.5 away, 60-degree view
@@ -180,10 +182,10 @@ class SpreadSpectrumEncoder(nn.Module):
             return activity_mask(texture, self.window, self.floor) * self.colour.to(texture)[None, :, None, None]
         for kept, version, field in self._amplitudes:  # kept alive here, so its memory is not reused
             if (kept.data_ptr(), kept.shape, kept.stride(), kept.dtype, version) == (
-                    texture.data_ptr(), texture.shape, texture.stride(), texture.dtype, texture._version):
+                    texture.data_ptr(), texture.shape, texture.stride(), texture.dtype, version_of(texture)):
                 return field
         field = activity_mask(texture, self.window, self.floor) * self.colour.to(texture)[None, :, None, None]
-        self._amplitudes = [(texture, texture._version, field)] + self._amplitudes[:3]
+        self._amplitudes = [(texture, version_of(texture), field)] + self._amplitudes[:3]
         return field
 
     def cells(self, message: torch.Tensor, key_seed: int | None = None, chips: int | None = None) -> torch.Tensor:
@@ -482,10 +484,10 @@ def _grouping(assign: torch.Tensor, n_bits: int) -> tuple[torch.Tensor, torch.Te
     """The cells of `assign` ordered by bit (stable) and each bit's count, worked out once per pattern
     (every picture read under one key uses the same)."""
     for kept, version, bits, grouping in _GROUPINGS:
-        if kept is assign and version == assign._version and bits == n_bits:
+        if kept is assign and version == version_of(assign) and bits == n_bits:
             return grouping
     grouping = torch.argsort(assign, stable=True), torch.bincount(assign, minlength=n_bits)
-    _GROUPINGS[:] = [(assign, assign._version, n_bits, grouping)] + _GROUPINGS[:3]
+    _GROUPINGS[:] = [(assign, version_of(assign), n_bits, grouping)] + _GROUPINGS[:3]
     return grouping
 
 

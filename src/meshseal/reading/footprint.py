@@ -82,10 +82,12 @@ def resized_adjoint(canvas: torch.Tensor, factor: float) -> torch.Tensor:
     and summed per cell of the source render is the matched filter of a mark that the resize blurred
     (the template is then the resize's own filter, not a Gaussian that stands in for it)."""
     size = resized_source_size(canvas.shape[-2], canvas.shape[-1], factor)
-    with torch.enable_grad():
-        source = canvas.new_zeros(*canvas.shape[:2], *size, requires_grad=True)
+    # autograd's own backward of the resize, also where the reading runs under inference mode (which
+    # records no graph): plain tensors there, the canvas copied into one
+    with torch.inference_mode(False), torch.enable_grad():
+        source = torch.zeros(*canvas.shape[:2], *size, dtype=canvas.dtype, device=canvas.device, requires_grad=True)
         resized = F.interpolate(source, size=canvas.shape[-2:], mode="bicubic", antialias=True, align_corners=False)
-        (back,) = torch.autograd.grad(resized, source, canvas)
+        (back,) = torch.autograd.grad(resized, source, canvas.clone())
     return back
 
 

@@ -30,12 +30,13 @@ def _kernels(sigma: float, dtype, device) -> torch.Tensor:
     """(3, 3, 3): the normalised Gaussian g and its x- and y-moment kernels g*ox/sigma^2, g*oy/sigma^2,
     as correlation kernels (flipped offsets), indexed [kind, row, col]. Made once per sigma, dtype and
     device (every render asks for them): callers read them and never write."""
-    offsets = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)
-    oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
-    gauss = torch.exp(-(ox ** 2 + oy ** 2) / (2.0 * sigma * sigma))
-    gauss = gauss / gauss.sum()
-    # Scatter to offset o equals correlation at -o: flip the moment kernels' sign.
-    return torch.stack([gauss, -gauss * ox / sigma ** 2, -gauss * oy / sigma ** 2]).to(dtype=dtype, device=device)
+    with torch.inference_mode(False):  # kept for every later render: a plain tensor, even if made while detecting
+        offsets = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)
+        oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
+        gauss = torch.exp(-(ox ** 2 + oy ** 2) / (2.0 * sigma * sigma))
+        gauss = gauss / gauss.sum()
+        # Scatter to offset o equals correlation at -o: flip the moment kernels' sign.
+        return torch.stack([gauss, -gauss * ox / sigma ** 2, -gauss * oy / sigma ** 2]).to(dtype=dtype, device=device)
 
 
 def _accumulate_conv(color: torch.Tensor, alpha: torch.Tensor, splat_xy: torch.Tensor,

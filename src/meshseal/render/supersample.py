@@ -15,6 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..versions import version
 from .compiled import njit
 from .lighting import ATTENUATION, K_AMBIENT, K_DIFFUSE
 from .rasterizer import visible_faces_within, whole_raster
@@ -122,7 +123,7 @@ _PACKED: list = []  # (textures, their versions, packed): the last few, kept ali
 def _signature(texture) -> tuple | None:
     if texture is None:
         return None
-    return texture.data_ptr(), texture.shape, texture.stride(), texture.dtype, texture.device, texture._version
+    return texture.data_ptr(), texture.shape, texture.stride(), texture.dtype, texture.device, version(texture)
 
 
 def _packed_textures(textures) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
