@@ -29,7 +29,9 @@ BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", 
                  # files that are not there: answered before the model or the mesh is loaded
                  ["detect", "no_such_picture.png", "--mesh", "no_such_mesh.glb"], ["info", "no_such_mesh.obj"],
                  ["embed", "no_such_mesh.glb", "-o", "out.glb", "--message", "ab"],
-                 ["render", "no_such_mesh.glb", "-o", "out.png"]]
+                 ["render", "no_such_mesh.glb", "-o", "out.png"],
+                 ["data", "stats", "no_such_dataset"], ["data", "build", "--from-folder", "no_such_folder", "--out", "o"],
+                 ["data", "build", "--textures", "no_such_folder", "--out", "o"]]
 
 
 def probe(argvs):

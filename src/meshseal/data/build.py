@@ -485,10 +485,7 @@ def write_manifest(out: Path, rows: list[dict]) -> None:
 
 
 def read_manifest(root) -> list[dict]:
-    root = Path(root)
-    path = root / "manifest.jsonl"
-    if not path.is_file():
-        raise S.DataError(f"{root}: not a meshseal dataset (no manifest.jsonl; run 'meshseal data build')")
+    path = S.manifest_path(root)
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 

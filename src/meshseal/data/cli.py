@@ -19,6 +19,9 @@ def _list(text: str) -> list[str]:
 
 
 def cmd_build(args) -> int:
+    for folder in (args.from_folder, args.textures):  # a mistyped folder answered before the heavy imports
+        if folder is not None:
+            S.existing_folder(folder)
     from .build import build, dataset_stats
 
     sources = _list(args.sources) if args.sources is not None else \
@@ -38,6 +41,7 @@ def cmd_build(args) -> int:
 
 
 def cmd_stats(args) -> int:
+    S.manifest_path(args.dir)  # not a dataset: answered before the heavy imports
     from .build import dataset_stats, format_stats
 
     stats = dataset_stats(args.dir)

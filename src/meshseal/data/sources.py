@@ -445,13 +445,29 @@ def texture_package_source(key: str, cache: Path, log=print):
 # ------------------------------------------------------------------ a user's folder
 
 
+def existing_folder(folder) -> Path:
+    """`folder` as a Path; DataError where it is not a folder (checked by the command line before the
+    build's heavy imports, so that a mistyped name is answered at once)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"{folder}: no such folder")
+    return folder
+
+
+def manifest_path(root) -> Path:
+    """A dataset's manifest.jsonl; DataError where `root` holds none (not a dataset built by `meshseal
+    data build`)."""
+    path = Path(root) / "manifest.jsonl"
+    if not path.is_file():
+        raise DataError(f"{root}: not a meshseal dataset (no manifest.jsonl; run 'meshseal data build')")
+    return path
+
+
 def folder_source(folder: Path, license_: str = "unknown", creator: str = "unknown"):
     """Meshes under `folder`; the category is the nearest folder name that is not train/test."""
     from .formats import MESH_SUFFIXES  # numpy and PIL: not imported to build the command line's parser
 
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DataError(f"{folder}: no such folder")
+    folder = existing_folder(folder)
     assets = []
     for path in sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES):
         rel = path.relative_to(folder)
@@ -476,9 +492,7 @@ def folder_source(folder: Path, license_: str = "unknown", creator: str = "unkno
 def image_folder_textures(folder: Path, license_: str = "unknown"):
     from .formats import IMAGE_SUFFIXES  # numpy and PIL: not imported to build the command line's parser
 
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DataError(f"{folder}: no such folder")
+    folder = existing_folder(folder)
     return [TextureCandidate(f"folder:{folder.name}", "", license_, str(p.relative_to(folder)), None, str(p))
             for p in sorted(folder.rglob("*")) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
 
