@@ -8,7 +8,10 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
+ROOT = Path(__file__).resolve().parents[1]
+FIXTURES, BUNNY, README = str(ROOT / "tests" / "fixtures"), str(ROOT / "tests" / "fixtures" / "bunny.glb"), str(ROOT / "README.md")
 HEAVY = ("torch", "numba", "trimesh", "numpy", "PIL", "scipy", "galois")
 
 PROBE = """
@@ -31,7 +34,14 @@ BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", 
                  ["embed", "no_such_mesh.glb", "-o", "out.glb", "--message", "ab"],
                  ["render", "no_such_mesh.glb", "-o", "out.png"],
                  ["data", "stats", "no_such_dataset"], ["data", "build", "--from-folder", "no_such_folder", "--out", "o"],
-                 ["data", "build", "--textures", "no_such_folder", "--out", "o"]]
+                 ["data", "build", "--textures", "no_such_folder", "--out", "o"],
+                 # a model, a format or a value the command would refuse after loading: refused before
+                 ["detect", BUNNY, "--mesh", BUNNY, "--model", "no_such_model"],
+                 ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--model", "no_such_model"],
+                 ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--strength", "-1"],
+                 ["info", README], ["detect", BUNNY, "--mesh", README],
+                 ["eval", "--data", "no_such_dataset"], ["eval", "--data", FIXTURES, "--model", "no_such_model"],
+                 ["train", "--config", "no_such_config.yaml"]]
 
 
 def probe(argvs):
@@ -51,6 +61,7 @@ def test_bad_arguments_are_refused_without_the_heavy_libraries():
     assert set(result["codes"].values()) == {2}
     assert result["stderr"].count("meshseal: error:") == len(BAD_ARGUMENTS)
     assert "no_such_mesh.glb: no such mesh file" in result["stderr"]
+    assert "unknown model 'no_such_model'" in result["stderr"] and "README.md: unsupported mesh format" in result["stderr"]
 
 
 SUBMODULE_FIRST = """

@@ -7,7 +7,6 @@ visibility budget, and explains a picture that reads no mark."""
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import torch
 
@@ -20,8 +19,7 @@ from .models.io import load_model
 from .reading.read import Reader, Reading
 from .reading.second_look import look_again
 
-WEIGHTS_DIR = Path(__file__).parent / "weights"
-DEFAULT_MODEL = "default"
+from .shipped import WEIGHTS_DIR, resolve_model
 SHOWS_MESH_BELOW = 0.8  # `why_not`: an object overlapping the original's silhouette less than this may be another mesh
 # `why_not`: the default's marks made before its pilot took blocks of cells are the `cell_pilot` model's, those
 # made before it took a pilot the `dense` model's, and those made before it moved to 64^2 cells (f70e3d2) the
@@ -46,19 +44,6 @@ def shipped_models() -> list[dict]:
                        "strategy": model.config.strategy, "informed": method.informed,
                        "calibrated": method.calibrated, "path": str(path)})
     return models
-
-
-def resolve_model(name_or_path: str | None) -> Path:
-    if name_or_path is None:
-        name_or_path = DEFAULT_MODEL
-    path = Path(name_or_path)
-    if path.suffix == ".safetensors" or path.exists():
-        return path
-    shipped = WEIGHTS_DIR / f"{name_or_path}.safetensors"
-    if shipped.is_file():
-        return shipped
-    names = ", ".join(m["name"] for m in shipped_models()) or "none"
-    raise MeshsealError(f"unknown model '{name_or_path}' (shipped: {names}; or give a .safetensors path)")
 
 
 def parse_bits(bits, n_bits: int) -> torch.Tensor:

@@ -39,14 +39,25 @@ def colour(text: str) -> tuple[float, float, float]:
 
 def require_files(*checks) -> None:
     """(path, what) pairs: a one-line error for the first path that is not there, before any heavy import,
-    so a mistyped name is answered at once. None paths are skipped; folders count as there."""
+    so a mistyped name is answered at once. None paths are skipped; folders count as there. A "mesh file"
+    must also be of a format meshseal reads (by its suffix)."""
     from pathlib import Path
 
     from ..errors import MeshsealError
+    from ..mesh_formats import file_type
 
     for path, what in checks:
         if path is not None and not Path(path).exists():
             raise MeshsealError(f"{path}: no such {what}")
+        if path is not None and what == "mesh file":
+            file_type(path)
+
+
+def require_model(name: str | None) -> None:
+    """A --model that names neither a shipped model nor a file: its one-line error before torch is imported."""
+    from ..shipped import resolve_model
+
+    resolve_model(name)
 
 
 SAMPLERS = {"paper": "seed", "seed": "seed", "any": "any"}  # 'seed' (the seed paper's): the older name of 'paper'

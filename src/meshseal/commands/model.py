@@ -11,7 +11,7 @@ from contextlib import closing
 from pathlib import Path
 
 from ..errors import MeshsealError
-from ._common import Stages, available_cores, positive_int, require_files, sampler
+from ._common import Stages, available_cores, positive_int, require_files, require_model, sampler
 
 
 def register(subparsers) -> None:
@@ -27,7 +27,7 @@ def register(subparsers) -> None:
     what.add_argument("--bits", help="raw bits to hide, no error correction (research): 0/1 of the model's length")
     _key_argument(embed)
     embed.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
-    embed.add_argument("--strength", type=float, default=None,
+    embed.add_argument("--strength", type=_strength_up_to(10.0), default=None,
                        help="spread-spectrum models: the mark's amplitude, 1 being the default one; 2 is 6 dB "
                             "louder (more robust, more visible), 0.5 6 dB quieter. Not given: 1, lowered where "
                             "needed to keep the mark's FLIP within --max-flip. Given: used as is (add --max-flip to "
@@ -191,14 +191,20 @@ def _asset_id(text: str) -> int:
     return value
 
 
-def _strength(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
-    if not 0.0 < value <= 100.0:
-        raise argparse.ArgumentTypeError(f"expected a strength in (0, 100], got {value}")
-    return value
+def _strength_up_to(limit: float):
+    """An argparse type: a strength in (0, limit] (`embed`: the API's own range, checked before it loads)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
+        if not 0.0 < value <= limit:
+            raise argparse.ArgumentTypeError(f"expected a strength in (0, {limit:g}], got {value}")
+        return value
+    return parse
+
+
+_strength = _strength_up_to(100.0)
 
 
 def _budget(text: str) -> float:
@@ -216,6 +222,7 @@ def run_embed(args) -> int:
         raise MeshsealError("--message is empty (or only spaces): give the text to hide (the default model holds 4 bytes), "
                             "or an asset ID with --id")
     require_files((args.input, "mesh file"))
+    require_model(args.model)
     stage = Stages()
     stage(f"loading the model and {args.input.name}")
     from ..api import load
@@ -372,6 +379,7 @@ def run_detect(args) -> int:
     started = time.perf_counter()  # what this process took to get ready is what a worker would take
     # one picture named: a mistyped name is answered at once; of several, a missing one is that line's error
     require_files((args.mesh, "mesh file"), *([(args.images[0], "picture or folder")] if len(args.images) == 1 else []))
+    require_model(args.model)
     expect = _expected(args)
     stage = Stages()
     stage("loading the model" + (f" and {args.mesh.name}" if args.mesh is not None else ""))
@@ -555,6 +563,10 @@ def _worker_read(task):
 
 
 def run_eval(args) -> int:
+    require_model(args.model)
+    # neither a dataset nor a folder: answered before the heavy imports (a folder's contents are checked after)
+    if not args.data.is_dir():
+        raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest) nor a folder of meshes")
     from ..api import load
     from ..data.dataset import MeshDataset
     from ..training.distortions import Distortions2D, Distortions3D
@@ -679,6 +691,7 @@ def _train_device(name: str) -> str:
 
 
 def run_train(args) -> int:
+    require_files((args.config, "config file"))
     from ..training.train import TrainConfig, Trainer
 
     config = TrainConfig.load(args.config)
@@ -704,6 +717,8 @@ def run_train(args) -> int:
 
 
 def run_finetune(args) -> int:
+    require_model(args.model)
+    require_files((args.data, "dataset folder"))
     from ..api import load
     from ..data.dataset import MeshDataset
     from ..training.finetune import FinetuneConfig, finetune

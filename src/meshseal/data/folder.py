@@ -2,7 +2,7 @@
 how the mark does on those assets (their own textures at their own sizes, not the dataset builder's
 re-processed copies), with every attack `meshseal eval --attacks` runs on the test split.
 
-Each file meshseal reads (`mesh.io.SUPPORTED`, found recursively, in name order) becomes one item in
+Each file meshseal reads (`mesh_formats.SUPPORTED`, found recursively, in name order) becomes one item in
 the dataset's form (`data.dataset.MeshDataset`: the tensors of one mesh in the canonical frame, z up,
 its bounding box centred and its largest extent spanning [-1, 1]). Only what one texture covers can be such an item: a file without a
 texture and UVs, or with several materials, is left out and said why (`skipped`).
@@ -24,7 +24,7 @@ class AssetFolder(torch.utils.data.Dataset):
     def __init__(self, root: Path):
         from ..errors import MeshError
         from ..mesh import load, normalize, to_z_up
-        from ..mesh.io import SUPPORTED
+        from ..mesh_formats import SUPPORTED
 
         root = Path(root)
         if not root.is_dir():

@@ -26,6 +26,7 @@ import torch
 from PIL import Image
 
 from ..errors import MeshError
+from ..mesh_formats import file_type as _file_type
 from . import cache as mesh_cache
 from .files import atomic_write_files
 from .core import DEFAULT_AMBIENT, DEFAULT_DIFFUSE, Material, Mesh
@@ -33,7 +34,6 @@ from .preprocess import vertex_normals
 from .validate import (check_glb, check_gltf, check_images, check_obj, check_off, check_ply, check_stl,
                        find_asset, read_regular, regular_file, resolved)
 
-SUPPORTED = {".obj": "obj", ".glb": "glb", ".gltf": "gltf", ".ply": "ply", ".off": "off", ".stl": "stl"}
 TEXT_FORMATS = {"obj", "off", "gltf"}
 STRUCTURE_CHECKS = {"glb": check_glb, "gltf": check_gltf, "ply": check_ply, "off": check_off, "stl": check_stl}
 UP_AXIS = {"obj": "y", "glb": "y", "gltf": "y", "ply": "z", "off": "z", "stl": "z"}
@@ -64,14 +64,6 @@ class Source:
 
 def _warn(message: str) -> None:
     print(f"meshseal: warning: {message}", file=sys.stderr)
-
-
-def _file_type(path: Path) -> str:
-    suffix = path.suffix.lower()
-    if suffix not in SUPPORTED:
-        raise MeshError(f"{path}: unsupported mesh format '{suffix or path.name}' "
-                        f"(supported: {', '.join(sorted(SUPPORTED))})")
-    return SUPPORTED[suffix]
 
 
 def _obj_references(path: Path, data: bytes) -> tuple[list[str], set[Path], list[tuple[str, Path]]]:
