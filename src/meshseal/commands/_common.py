@@ -39,18 +39,24 @@ def colour(text: str) -> tuple[float, float, float]:
 
 def require_files(*checks) -> None:
     """(path, what) pairs: a one-line error for the first path that is not there, before any heavy import,
-    so a mistyped name is answered at once. None paths are skipped; folders count as there. A "mesh file"
-    must also be of a format meshseal reads (by its suffix)."""
+    so a mistyped name is answered at once. None paths are skipped; folders count as there."""
     from pathlib import Path
 
     from ..errors import MeshsealError
-    from ..mesh_formats import file_type
 
     for path, what in checks:
         if path is not None and not Path(path).exists():
             raise MeshsealError(f"{path}: no such {what}")
-        if path is not None and what == "mesh file":
-            file_type(path)
+
+
+def require_mesh(path) -> None:
+    """`require_files` for a mesh file (None: skipped), which must also be of a format meshseal reads (by
+    its suffix)."""
+    from ..mesh_formats import file_type
+
+    require_files((path, "mesh file"))
+    if path is not None:
+        file_type(path)
 
 
 def require_model(name: str | None) -> None:

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ._common import require_files
+from ._common import require_mesh
 
 
 def register(subparsers) -> None:
@@ -72,7 +72,7 @@ def _text(info: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    require_files((args.mesh, "mesh file"))
+    require_mesh(args.mesh)
     from ..mesh import load
 
     info = describe(load(args.mesh, up_axis=args.up), args.mesh)

@@ -11,7 +11,7 @@ from contextlib import closing
 from pathlib import Path
 
 from ..errors import MeshsealError
-from ._common import Stages, available_cores, positive_int, require_files, require_model, sampler
+from ._common import Stages, available_cores, positive_int, require_files, require_mesh, require_model, sampler
 
 
 def register(subparsers) -> None:
@@ -221,7 +221,7 @@ def run_embed(args) -> int:
     if args.message is not None and not args.message.strip():
         raise MeshsealError("--message is empty (or only spaces): give the text to hide (the default model holds 4 bytes), "
                             "or an asset ID with --id")
-    require_files((args.input, "mesh file"))
+    require_mesh(args.input)
     require_model(args.model)
     stage = Stages()
     stage(f"loading the model and {args.input.name}")
@@ -378,7 +378,8 @@ def _describe(result, expect=None) -> str:
 def run_detect(args) -> int:
     started = time.perf_counter()  # what this process took to get ready is what a worker would take
     # one picture named: a mistyped name is answered at once; of several, a missing one is that line's error
-    require_files((args.mesh, "mesh file"), *([(args.images[0], "picture or folder")] if len(args.images) == 1 else []))
+    require_mesh(args.mesh)
+    require_files(*([(args.images[0], "picture or folder")] if len(args.images) == 1 else []))
     require_model(args.model)
     expect = _expected(args)
     stage = Stages()
@@ -576,8 +577,6 @@ def run_eval(args) -> int:
 
     watermarker = load(args.model)
     folder = not (args.data / "manifest.jsonl").is_file() and not (args.data / "manifest.csv").is_file()
-    if folder and not args.data.is_dir():
-        raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest) nor a folder of meshes")
     if folder and not (watermarker.informed and (args.register or args.attacks is not None)):
         raise MeshsealError(f"{args.data}: a folder of meshes (no manifest) is evaluated as `detect` reads pictures: "
                             f"give --attacks (e.g. none) or --register, with an informed model")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..errors import MeshsealError
 from ..render import ENGINES, LIGHT_KINDS, VIEW_TRANSFORMS
-from ._common import Stages, colour, positive_int, require_files, sampler, vector3
+from ._common import Stages, colour, positive_int, require_mesh, sampler, vector3
 
 FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}
 
@@ -147,7 +147,7 @@ def _engine_options(args) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    require_files((args.mesh, "mesh file"))
+    require_mesh(args.mesh)
     stage = Stages()
     stage(f"loading {args.mesh.name}")
     import numpy as np
