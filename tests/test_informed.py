@@ -385,3 +385,29 @@ def test_reading_runs_under_inference_mode_and_leaves_later_renders_differentiab
     image = MeshRenderer()(replace(mesh, textures=[texture]), cameras, lights, 96, 96).image
     image.sum().backward()
     assert texture.grad is not None and float(texture.grad.abs().sum()) > 0
+
+
+def test_a_light_fit_of_many_images_at_once_is_each_images_own_fit():
+    """`fit_point_light` searches around each image's best light for all images at once (a registration
+    scores a hundred views): each image ends at the light it would reach fitted alone."""
+    from meshseal.render import fit_point_light
+
+    generator = torch.Generator().manual_seed(0)
+    counts = torch.tensor([700, 20, 9, 2500])  # a small image, one too small to fit (ambient only), a large one
+    image = torch.repeat_interleave(torch.arange(4), counts)[torch.randperm(int(counts.sum()), generator=generator)]
+    position = torch.randn(len(image), 3, generator=generator) * 0.3
+    normal = torch.nn.functional.normalize(torch.randn(len(image), 3, generator=generator), dim=1)
+    albedo = torch.rand(len(image), 3, generator=generator)
+    lights = torch.tensor([[2.0, 1.0, 3.0], [-1.0, 2.0, 2.0], [0.0, 0.0, 4.0], [3.0, -2.0, 1.0]])[image]
+    distance = (lights - position).norm(dim=1)
+    lambert = ((normal * (lights - position)).sum(1) / distance).clamp_min(0) / (1 + 0.1 * distance)
+    seen = (albedo * (0.3 + 0.7 * lambert[:, None])).clamp(0, 1)
+    ambient, fitted = fit_point_light(seen, albedo, position, normal, image, 4, 48, 256)
+    for index in range(4):
+        alone = image == index
+        own_ambient, own = fit_point_light(seen[alone], albedo[alone], position[alone], normal[alone],
+                                           torch.zeros(int(alone.sum()), dtype=torch.long), 1, 48, 256)
+        assert torch.allclose(ambient[index], own_ambient[0], atol=1e-5)
+        assert torch.allclose(fitted.position[index], own.position[0], atol=1e-5)
+        assert torch.allclose(fitted.intensity[index], own.intensity[0], atol=1e-5)
+    assert torch.equal(fitted.intensity[2], torch.zeros(1, 3))  # too few pixels: no point light

@@ -4,6 +4,7 @@ look in that picture (informed detection subtracts it to isolate the watermark).
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from .cameras import fibonacci_directions
 from .lighting import ATTENUATION, K_AMBIENT, K_DIFFUSE, PointLights
@@ -30,18 +31,32 @@ def fit_point_light(seen: torch.Tensor, albedo: torch.Tensor, position: torch.Te
         ambient = seen.new_ones(n_images, 3) / K_AMBIENT
         light_position = seen.new_zeros(n_images, 1, 3)
         intensity = seen.new_zeros(n_images, 1, 3)
+        fits = []  # (image, its pixels (y, u, p, n), the best of the grid) of each image with enough pixels
         for index in range(n_images):
             chosen = torch.nonzero(image_index == index).squeeze(1)
             if len(chosen) < 16:
                 continue
             chosen = chosen[:: max(1, len(chosen) // max_pixels)]  # an even subsample is plenty for 7 numbers
-            y, u = seen.index_select(0, chosen), albedo.index_select(0, chosen)
-            p, n = position.index_select(0, chosen), normal.index_select(0, chosen)
-            best = _best_light(y, u, p, n, grid)
+            pixels = tuple(values.index_select(0, chosen) for values in (seen, albedo, position, normal))
+            fits.append((index, pixels, _best_light(*pixels, grid)))  # the grid image by image: (P, K) in the cache
+        if len(fits) == 1:
+            index, pixels, best = fits[0]
             for step in (0.3, 0.1, 0.03):  # then search ever closer around the best
                 centre = best[2]
-                best = min(best, _best_light(y, u, p, n, centre + step * centre.norm() * ring), key=lambda b: b[0])
-            _, a, centre, d = best
+                best = min(best, _best_light(*pixels, centre + step * centre.norm() * ring), key=lambda b: b[0])
+            fits = [(index, pixels, best)]
+        elif fits:  # many images (a registration scores a hundred views): their searches around the best at once
+            size = max(len(pixels[0]) for _, pixels, _ in fits)
+            stacked = [torch.stack([F.pad(pixels[k], (0, 0, 0, size - len(pixels[k]))) for _, pixels, _ in fits])
+                       for k in range(4)]  # (F, P, 3), padded with zeros, which add nothing to the sums
+            best = [torch.stack([torch.as_tensor(fit[2][k], dtype=seen.dtype) for fit in fits]) for k in range(4)]
+            for step in (0.3, 0.1, 0.03):
+                centre = best[2]
+                closer = _best_light(*stacked, centre[:, None] + step * centre.norm(dim=-1)[:, None, None] * ring)
+                better = closer[0] < best[0]  # a tie keeps the first, as `min` does
+                best = [torch.where(better.reshape(-1, *[1] * (new.dim() - 1)), new, old) for new, old in zip(closer, best)]
+            fits = [(index, pixels, tuple(part[i] for part in best)) for i, (index, pixels, _) in enumerate(fits)]
+        for index, _, (_, a, centre, d) in fits:
             ambient[index], light_position[index, 0], intensity[index, 0] = a / K_AMBIENT, centre, d / K_DIFFUSE
         return ambient, PointLights(light_position, intensity)
 
@@ -49,27 +64,33 @@ def fit_point_light(seen: torch.Tensor, albedo: torch.Tensor, position: torch.Te
 def _best_light(y, u, position, normal, candidates):
     """Least-squares fit of y ~ a * u + d * u * lambert(candidate) per channel for each candidate light
     position (K, 3); returns (residual, a (3,), position (3,), d (3,)) of the best one. Every sum over
-    pixels is a (P, K) matrix product: every candidate is scored at once, not in a loop."""
+    pixels is a (P, K) matrix product: every candidate is scored at once, not in a loop. Batched: pixels
+    (F, P, 3) and candidates (F, K, 3), each image its own, return (F,), (F, 3), (F, 3), (F, 3)."""
     kc, kl, kq = ATTENUATION
     # The (P, K) terms are built in place, in the same order of operations as the plain expressions
     # (squared = |c|^2 - 2 p.c + |p|^2, lit = max(n.c - n.p, 0) / distance / (kc + kl distance + kq
     # squared)): the same bits, without ten (P, K) temporaries.
-    squared = (position @ candidates.T).mul_(-2.0).add_((candidates * candidates).sum(-1))
+    across = candidates.transpose(-1, -2)  # (3, K) or (F, 3, K)
+    squared = (position @ across).mul_(-2.0).add_((candidates * candidates).sum(-1).unsqueeze(-2))
     squared.add_((position * position).sum(-1, True))
     distance = squared.clamp_min(1e-12).sqrt_()  # (P, K)
-    lit = (normal @ candidates.T).sub_((normal * position).sum(-1, True)).div_(distance).clamp_min_(0.0)
+    lit = (normal @ across).sub_((normal * position).sum(-1, True)).div_(distance).clamp_min_(0.0)
     lit.div_(distance.mul_(kl).add_(kc).add_(squared.mul_(kq)))  # (P, K); distance and squared used up
     uu, uy = u * u, u * y
-    suu, suy = uu.sum(0, True).T, uy.sum(0, True).T  # (3, 1)
-    suv, svy = uu.T @ lit, uy.T @ lit  # (3, K)
-    svv = uu.T @ lit.mul_(lit)
+    suu, suy = uu.sum(-2).unsqueeze(-1), uy.sum(-2).unsqueeze(-1)  # (3, 1)
+    suv, svy = uu.transpose(-1, -2) @ lit, uy.transpose(-1, -2) @ lit  # (3, K)
+    svv = uu.transpose(-1, -2) @ lit.mul_(lit)
     det = (suu * svv - suv * suv).clamp_min(1e-9)
     a = ((svv * suy - suv * svy) / det).clamp_min(0.0)
     d = ((suu * svy - suv * suy) / det).clamp_min(0.0)
-    residual = ((y * y).sum(0, True).T - 2 * (a * suy + d * svy) + a * a * suu + 2 * a * d * suv
-                + d * d * svv).sum(0)
-    best = int(residual.argmin())
-    return float(residual[best]), a[:, best], candidates[best], d[:, best]
+    residual = ((y * y).sum(-2).unsqueeze(-1) - 2 * (a * suy + d * svy) + a * a * suu + 2 * a * d * suv
+                + d * d * svv).sum(-2)  # (K,) or (F, K)
+    if residual.dim() == 1:
+        best = int(residual.argmin())
+        return float(residual[best]), a[:, best], candidates[best], d[:, best]
+    best = residual.argmin(-1)  # (F,)
+    rows = torch.arange(len(best), device=best.device)
+    return residual[rows, best], a[rows, :, best], candidates[rows, best], d[rows, :, best]
 
 
 def relight_fragments(batch, fragments, cameras, seen: torch.Tensor, albedo: torch.Tensor | None = None,
