@@ -190,9 +190,8 @@ class Reader:
         guesses, recut = self._object_guesses(pixels, mask, alpha, original)
         factor = registration_factor(mask)
         picture, guesses, recut = enlarged(tensor[0].cpu(), guesses, recut, factor)
-        with torch.enable_grad():
-            found = register_with_masks(self.on_cpu(original), picture, guesses, background_tensor.cpu(),
-                                        fov_y=fov_y, recut=recut, quick=quick)
+        found = register_with_masks(self.on_cpu(original), picture, guesses, background_tensor.cpu(),
+                                    fov_y=fov_y, recut=recut, quick=quick)
         # a camera is the same for the picture at any size: its last hundredths of a pixel at the picture's own
         camera, own_mask = found.camera, torch.from_numpy(np.ascontiguousarray(mask))[None].float()
         behind = self._plain_background(pixels, alpha) if object_side(mask) < RIM_BELOW else None

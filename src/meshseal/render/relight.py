@@ -44,7 +44,7 @@ def fit_point_light(seen: torch.Tensor, albedo: torch.Tensor, position: torch.Te
             for step in (0.3, 0.1, 0.03):  # then search ever closer around the best
                 centre = best[2]
                 best = min(best, _best_light(*pixels, centre + step * centre.norm() * ring), key=lambda b: b[0])
-            fits = [(index, pixels, best)]
+            fits[0] = (index, pixels, best)
         elif fits:  # many images (a registration scores a hundred views): their searches around the best at once
             size = max(len(pixels[0]) for _, pixels, _ in fits)
             stacked = [torch.stack([F.pad(pixels[k], (0, 0, 0, size - len(pixels[k]))) for _, pixels, _ in fits])
