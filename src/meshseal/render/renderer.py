@@ -83,15 +83,26 @@ class MeshBatch:
 
 @dataclass
 class RenderOutput:
-    """rgba (B, H, W, 4) composited over the background; fragments for reuse (e.g. masks)."""
+    """The render composited over the background: `color` (B, H, W, 3) and `alpha` (B, H, W); `fragments`
+    for reuse (e.g. masks). `rgba` (B, H, W, 4) joins them when asked: most callers read `image` alone,
+    and a registration makes thousands of renders, so none pays for the joined copy it does not read."""
 
-    rgba: torch.Tensor
+    color: torch.Tensor
+    alpha: torch.Tensor
     fragments: Fragments
+
+    @property
+    def rgba(self) -> torch.Tensor:
+        """(B, H, W, 4): colour and coverage (made once, then kept)."""
+        joined = self.__dict__.get("_rgba")
+        if joined is None:
+            joined = self.__dict__["_rgba"] = torch.cat([self.color, self.alpha.unsqueeze(-1)], dim=-1)
+        return joined
 
     @property
     def image(self) -> torch.Tensor:
         """(B, 3, H, W), the layout the networks use."""
-        return self.rgba[..., :3].permute(0, 3, 1, 2)
+        return self.color.permute(0, 3, 1, 2)
 
 
 def per_fragment(table: torch.Tensor, fragments: Fragments) -> torch.Tensor:
@@ -147,11 +158,11 @@ class MeshRenderer:
         alpha = (fragments.pix_to_face >= 0).to(dtype)
         if self.blend == "hard":
             color = color + (1.0 - alpha.unsqueeze(-1)) * background[:, None, None, :]
-            return RenderOutput(torch.cat([color, alpha.unsqueeze(-1)], dim=-1), fragments)
+            return RenderOutput(color, alpha, fragments)
         from .splatter import splat
 
         image, coverage = splat(color, alpha, splat_positions(fragments), background, self.sigma)
-        return RenderOutput(torch.cat([image, coverage.unsqueeze(-1)], dim=-1), fragments)
+        return RenderOutput(image, coverage, fragments)
 
     def shade(self, batch: MeshBatch, cameras: Cameras, lights: PointLights, fragments: Fragments,
               surface: tuple | None = None) -> torch.Tensor:
