@@ -41,7 +41,12 @@ BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", 
                  ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--strength", "-1"],
                  ["info", README], ["detect", BUNNY, "--mesh", README],
                  ["eval", "--data", "no_such_dataset"], ["eval", "--data", FIXTURES, "--model", "no_such_model"],
-                 ["train", "--config", "no_such_config.yaml"]]
+                 ["train", "--config", "no_such_config.yaml"],
+                 # what the arguments alone decide: refused before the model and the mesh are loaded
+                 ["detect", BUNNY, "--mesh", BUNNY, "--fov", "-3"], ["render", BUNNY, "-o", "out.bmp"],
+                 ["embed", BUNNY, "-o", "out.txt", "--message", "ab"],
+                 ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--preview", "out.glb"],
+                 ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--views", "0", "--preview", "sheet.png"]]
 
 
 def probe(argvs):
@@ -55,13 +60,29 @@ def test_help_does_not_import_the_heavy_libraries():
     assert set(result["codes"].values()) == {0}
 
 
-def test_bad_arguments_are_refused_without_the_heavy_libraries():
-    result = probe(BAD_ARGUMENTS)
+def test_bad_arguments_are_refused_without_the_heavy_libraries(tmp_path):
+    empty = tmp_path / "no_pictures_here"
+    empty.mkdir()
+    result = probe(BAD_ARGUMENTS + [["detect", str(empty), "--mesh", BUNNY]])
     assert result["loaded"] == []
     assert set(result["codes"].values()) == {2}
-    assert result["stderr"].count("meshseal: error:") == len(BAD_ARGUMENTS)
+    assert result["stderr"].count("meshseal: error:") == len(BAD_ARGUMENTS) + 1
+    assert "no pictures in this folder" in result["stderr"] and "out.bmp: the output must be a .png" in result["stderr"]
+    assert "out.txt: unsupported mesh format" in result["stderr"] and "--fov must be between" in result["stderr"]
     assert "no_such_mesh.glb: no such mesh file" in result["stderr"]
     assert "unknown model 'no_such_model'" in result["stderr"] and "README.md: unsupported mesh format" in result["stderr"]
+
+
+def test_a_file_that_is_no_picture_is_refused_before_torch(tmp_path):
+    """A text file or an empty file named as the picture: its one-line error from the file's header (PIL
+    alone), not after torch and the model are loaded."""
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    result = probe([["detect", README, "--mesh", BUNNY], ["detect", str(empty), "--mesh", BUNNY]])
+    assert [m for m in result["loaded"] if m != "PIL"] == []
+    assert set(result["codes"].values()) == {2}
+    assert "README.md: not a readable image (not an image format PIL reads)" in result["stderr"]
+    assert "empty.png: image file is empty" in result["stderr"]
 
 
 SUBMODULE_FIRST = """

@@ -59,6 +59,30 @@ def require_mesh(path) -> None:
         file_type(path)
 
 
+def require_picture(path) -> None:
+    """A picture file named on the command line that PIL does not recognise as an image (a text file, an
+    empty one): its one-line error before torch is imported. Only the file's header is read; a picture
+    that is recognised but damaged further on is answered by the reading, as before."""
+    from pathlib import Path
+
+    from ..errors import MeshsealError
+
+    path = Path(path)
+    if not path.is_file():
+        return
+    if path.stat().st_size == 0:
+        raise MeshsealError(f"{path}: image file is empty")
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path):
+            pass
+    except UnidentifiedImageError:
+        raise MeshsealError(f"{path}: not a readable image (not an image format PIL reads)") from None
+    except (OSError, ValueError, SyntaxError):  # recognised but damaged, or unreadable: the reading says which
+        pass
+
+
 def require_model(name: str | None) -> None:
     """A --model that names neither a shipped model nor a file: its one-line error before torch is imported."""
     from ..shipped import resolve_model

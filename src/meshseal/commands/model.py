@@ -11,7 +11,9 @@ from contextlib import closing
 from pathlib import Path
 
 from ..errors import MeshsealError
-from ._common import Stages, available_cores, positive_int, require_files, require_mesh, require_model, sampler
+from ..mesh_formats import file_type
+from ._common import (Stages, available_cores, positive_int, require_files, require_mesh, require_model,
+                      require_picture, sampler)
 
 
 def register(subparsers) -> None:
@@ -223,6 +225,15 @@ def run_embed(args) -> int:
                             "or an asset ID with --id")
     require_mesh(args.input)
     require_model(args.model)
+    # what the arguments alone decide, before the model and the mesh are loaded (answered at once)
+    file_type(args.output)
+    if args.preview is not None:
+        if args.views == 0:
+            raise MeshsealError("--preview shows a render: give --views 1 or more")
+        if os.path.realpath(args.preview) == os.path.realpath(args.output):
+            raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
+    if args.max_flip is not None and args.max_flip > 0 and args.views == 0:
+        raise MeshsealError("--max-flip measures the mark in renders: give --views 1 or more, or --max-flip 0")
     stage = Stages()
     stage(f"loading the model and {args.input.name}")
     from ..api import load
@@ -234,17 +245,11 @@ def run_embed(args) -> int:
     mesh = load_mesh(args.input, up_axis=args.up, cache="fill")  # for the detections after it
     check_output(args.output, mesh.source.input_files)
     if args.preview is not None:
-        if args.views == 0:
-            raise MeshsealError("--preview shows a render: give --views 1 or more")
-        if os.path.realpath(args.preview) == os.path.realpath(args.output):
-            raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
         check_output(args.preview, mesh.source.input_files)
     key = _key(args)
     base = watermarker.layout(mesh, note=True)  # what the mark is added to (palette faces charted), charted once
     message = {"bits": args.bits} if args.bits is not None else {"message": args.message if args.id is None else args.id}
     asked = 1.0 if args.strength is None else args.strength
-    if args.max_flip is not None and args.max_flip > 0 and args.views == 0:
-        raise MeshsealError("--max-flip measures the mark in renders: give --views 1 or more, or --max-flip 0")
     default_budget = args.strength is None and args.views > 0
     max_flip = args.max_flip if args.max_flip is not None else (MAX_FLIP if default_budget else 0.0)
     budget = max_flip > 0 and watermarker.method.flip_budget
@@ -381,16 +386,18 @@ def run_detect(args) -> int:
     require_mesh(args.mesh)
     require_files(*([(args.images[0], "picture or folder")] if len(args.images) == 1 else []))
     require_model(args.model)
+    if not 1.0 <= args.fov <= 170.0:
+        raise MeshsealError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
+    pictures = picture_paths(args.images)
+    if len(args.images) == 1 and len(pictures) == 1:  # one picture named: one that is none is answered at once
+        require_picture(pictures[0])
     expect = _expected(args)
     stage = Stages()
     stage("loading the model" + (f" and {args.mesh.name}" if args.mesh is not None else ""))
     from ..api import load
 
     watermarker = load(args.model)
-    if not 1.0 <= args.fov <= 170.0:
-        raise MeshsealError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
     key = _key(args)
-    pictures = picture_paths(args.images)
     original = None
     if watermarker.informed:
         if args.mesh is None:

@@ -148,6 +148,10 @@ def _engine_options(args) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     require_mesh(args.mesh)
+    output: Path = args.output
+    fmt = FORMATS.get(output.suffix.lower())
+    if fmt is None:  # before the heavy imports: answered at once
+        raise MeshsealError(f"{output}: the output must be a .png or .jpg file")
     stage = Stages()
     stage(f"loading {args.mesh.name}")
     import numpy as np
@@ -160,10 +164,6 @@ def run(args: argparse.Namespace) -> int:
     from ..reading.pictures import image_bytes
     from ..render import lights_at, make_renderer
 
-    output: Path = args.output
-    fmt = FORMATS.get(output.suffix.lower())
-    if fmt is None:
-        raise MeshsealError(f"{output}: the output must be a .png or .jpg file")
     mesh = load(args.mesh, up_axis=args.up, cache=True)
     paths = output_paths(output, len(args.camera) if args.camera else args.views)
     protected = set(mesh.source.input_files) if mesh.source is not None else set()
