@@ -11,7 +11,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 # Lowest first. A module takes the layer of its longest matching prefix.
 LAYERS = [
     ("meshseal.errors", "meshseal._lazy", "meshseal.threads", "meshseal.imaging", "meshseal.payload", "meshseal.versions",
-     "meshseal.shipped", "meshseal.mesh_formats"),
+     "meshseal.shipped", "meshseal.mesh_formats", "meshseal.messages"),
     ("meshseal.mesh",),
     ("meshseal.render", "meshseal.data"),
     ("meshseal.models", "meshseal.evaluation.metrics", "meshseal.evaluation.attacks", "meshseal.evaluation.paper_plan"),

@@ -46,7 +46,10 @@ BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", 
                  ["detect", BUNNY, "--mesh", BUNNY, "--fov", "-3"], ["render", BUNNY, "-o", "out.bmp"],
                  ["embed", BUNNY, "-o", "out.txt", "--message", "ab"],
                  ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--preview", "out.glb"],
-                 ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--views", "0", "--preview", "sheet.png"]]
+                 ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--views", "0", "--preview", "sheet.png"],
+                 # a message the model cannot carry (its size from the weights file's header)
+                 ["embed", BUNNY, "-o", "out.glb", "--message", "toolong"], ["embed", BUNNY, "-o", "out.glb", "--id", str(2 ** 32)],
+                 ["detect", BUNNY, "--mesh", BUNNY, "--expect", "toolong"]]
 
 
 def probe(argvs):
@@ -69,8 +72,18 @@ def test_bad_arguments_are_refused_without_the_heavy_libraries(tmp_path):
     assert result["stderr"].count("meshseal: error:") == len(BAD_ARGUMENTS) + 1
     assert "no pictures in this folder" in result["stderr"] and "out.bmp: the output must be a .png" in result["stderr"]
     assert "out.txt: unsupported mesh format" in result["stderr"] and "--fov must be between" in result["stderr"]
+    assert result["stderr"].count("text message is 7 bytes in UTF-8; a 64-bit model carries at most 4") == 2
+    assert "ID must be an integer from 0 to 4294967295" in result["stderr"]
     assert "no_such_mesh.glb: no such mesh file" in result["stderr"]
     assert "unknown model 'no_such_model'" in result["stderr"] and "README.md: unsupported mesh format" in result["stderr"]
+
+
+def test_a_models_size_is_read_from_its_weights_header_without_torch(tmp_path):
+    from meshseal.shipped import model_bits
+
+    assert model_bits(None) == 64 and model_bits("learned32") == 32
+    (tmp_path / "other.safetensors").write_bytes(b"not a weights file")
+    assert model_bits(str(tmp_path / "other.safetensors")) is None
 
 
 def test_a_file_that_is_no_picture_is_refused_before_torch(tmp_path):

@@ -33,30 +33,12 @@ import numpy as np
 import torch
 
 from .errors import MeshsealError
+# the schema and what a message may be live in `messages`, torch-free: the command line checks a message with them
+from .messages import KINDS, SCHEMA_VERSION, SCHEMAS, Message, payload_bits
+from .messages import Schema as _Schema, payload_value as _payload_value, schema as _schema
 
-SCHEMA_VERSION = 1
 FPR = 1e-6
 DEFAULT_KEY = b"meshseal public key"
-KINDS = ("raw", "text", "id")  # header values 0, 1, 2; 3 is reserved
-HEADER_BITS = 4
-
-
-@dataclass(frozen=True)
-class _Schema:
-    """BCH(2^m - 1, k) over GF(2^m) built on `primitive_poly`, extended by one parity bit; `d` is its
-    designed distance (galois builds the code from it in one step instead of searching for k)."""
-
-    m: int
-    k: int
-    d: int
-    primitive_poly: str
-
-    @property
-    def payload_bits(self) -> int:
-        return self.k - HEADER_BITS
-
-
-SCHEMAS = {64: _Schema(6, 36, 11, "x^6 + x + 1"), 32: _Schema(5, 16, 7, "x^5 + x^2 + 1")}
 
 
 # The distributions' tails, from torch in float64 (imported already; scipy.special would add a tenth of
@@ -97,17 +79,6 @@ def _poisson_above(k: int, mean: float) -> float:
     return float(torch.special.gammainc(_float64(k + 1.0), _float64(mean)))
 
 
-def _schema(n_bits: int) -> _Schema:
-    if n_bits not in SCHEMAS:
-        raise MeshsealError(f"no payload schema for a model of {n_bits} bits (known: {', '.join(map(str, SCHEMAS))})")
-    return SCHEMAS[n_bits]
-
-
-def payload_bits(n_bits: int) -> int:
-    """Message bits a model of `n_bits` raw bits carries after the header and the error correction."""
-    return _schema(n_bits).payload_bits
-
-
 @lru_cache(maxsize=None)
 def _code(n_bits: int):
     """The galois BCH code of a schema, built once (the field polynomial is pinned: it fixes the code)."""
@@ -121,26 +92,6 @@ def _code(n_bits: int):
     if code.k != schema.k:  # pragma: no cover - the schema table is wrong
         raise MeshsealError(f"BCH(2^{schema.m} - 1, d={schema.d}) has k = {code.k}, the schema says {schema.k}")
     return code
-
-
-@dataclass(frozen=True)
-class Message:
-    """An explicit message: `Message.text("hi")`, `Message.id(123)` or `Message.raw("0101...")`."""
-
-    kind: str
-    value: str | int
-
-    @classmethod
-    def text(cls, value: str) -> "Message":
-        return cls("text", value)
-
-    @classmethod
-    def id(cls, value: int) -> "Message":
-        return cls("id", value)
-
-    @classmethod
-    def raw(cls, value: str) -> "Message":
-        return cls("raw", value)
 
 
 @dataclass(frozen=True)
@@ -193,39 +144,6 @@ def _keystream(key, n_bits: int) -> np.ndarray:
 
 
 # --- encode -----------------------------------------------------------------------------------------
-
-def _payload_value(message: str | int | Message, n_bits: int) -> tuple[int, int]:
-    """(kind index, payload integer) of a message; clear errors for anything that does not fit."""
-    size = payload_bits(n_bits)
-    if isinstance(message, Message):
-        kind, value = message.kind, message.value
-    elif isinstance(message, str):
-        kind, value = "text", message
-    elif isinstance(message, int) and not isinstance(message, bool):
-        kind, value = "id", message
-    else:
-        raise MeshsealError(f"message must be text (str), an ID (int) or a Message, got {type(message).__name__}")
-    if kind == "text":
-        if not isinstance(value, str):
-            raise MeshsealError("a text message must be a str")
-        if "\0" in value:
-            raise MeshsealError("a text message cannot contain NUL characters")
-        data, limit = value.encode("utf-8"), size // 8
-        if len(data) > limit:
-            raise MeshsealError(f"text message is {len(data)} bytes in UTF-8; a {n_bits}-bit model carries at most "
-                                f"{limit} ({size} payload bits)")
-        return KINDS.index("text"), int.from_bytes(data.ljust(limit, b"\0"), "big")
-    if kind == "id":
-        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < 2 ** size:
-            raise MeshsealError(f"ID must be an integer from 0 to {2 ** size - 1} ({size} bits) for a {n_bits}-bit "
-                                f"model, got {value!r}")
-        return KINDS.index("id"), value
-    if kind == "raw":
-        if not isinstance(value, str) or len(value) != size or set(value) - {"0", "1"}:
-            raise MeshsealError(f"a raw message must be a string of exactly {size} 0s and 1s for a {n_bits}-bit model")
-        return KINDS.index("raw"), int(value, 2)
-    raise MeshsealError(f"message kind must be one of {', '.join(KINDS)}, got {kind!r}")
-
 
 def encode(message: str | int | Message, key: str | bytes | None = None, n_bits: int = 64) -> torch.Tensor:
     """Raw bits (n_bits,) of 0./1. carrying `message` (str: text, int: ID, or a Message) under `key`."""
@@ -869,4 +787,4 @@ def detected(p: float) -> bool:
 
 
 __all__ = ["encode", "decode", "Decoded", "Message", "payload_bits", "key_seed", "detection_pvalue",
-           "match_pvalue", "pool", "binomial_pvalue", "detected", "FPR", "SCHEMA_VERSION"]
+           "match_pvalue", "pool", "binomial_pvalue", "detected", "FPR", "SCHEMA_VERSION", "SCHEMAS"]

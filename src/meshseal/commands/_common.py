@@ -83,6 +83,19 @@ def require_picture(path) -> None:
         pass
 
 
+def require_messages(messages, model: str | None) -> None:
+    """Messages (text or IDs) that cannot be messages of `model` (too long a text, too large an ID): their
+    one-line error before torch is imported, the model's size read from its weights file's header. A
+    model of a size without a payload schema is left to the command (it says so itself)."""
+    from ..messages import SCHEMAS, payload_value
+    from ..shipped import model_bits
+
+    bits = model_bits(model)
+    if bits in SCHEMAS:
+        for message in messages:
+            payload_value(message, bits)
+
+
 def require_model(name: str | None) -> None:
     """A --model that names neither a shipped model nor a file: its one-line error before torch is imported."""
     from ..shipped import resolve_model

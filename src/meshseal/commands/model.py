@@ -12,8 +12,8 @@ from pathlib import Path
 
 from ..errors import MeshsealError
 from ..mesh_formats import file_type
-from ._common import (Stages, available_cores, positive_int, require_files, require_mesh, require_model,
-                      require_picture, sampler)
+from ._common import (Stages, available_cores, positive_int, require_files, require_mesh, require_messages,
+                      require_model, require_picture, sampler)
 
 
 def register(subparsers) -> None:
@@ -234,6 +234,8 @@ def run_embed(args) -> int:
             raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
     if args.max_flip is not None and args.max_flip > 0 and args.views == 0:
         raise MeshsealError("--max-flip measures the mark in renders: give --views 1 or more, or --max-flip 0")
+    if args.bits is None:
+        require_messages([args.message if args.id is None else args.id], args.model)
     stage = Stages()
     stage(f"loading the model and {args.input.name}")
     from ..api import load
@@ -388,10 +390,12 @@ def run_detect(args) -> int:
     require_model(args.model)
     if not 1.0 <= args.fov <= 170.0:
         raise MeshsealError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
+    expect = _expected(args)
+    if expect is not None:
+        require_messages(expect if isinstance(expect, tuple) else [expect], args.model)
     pictures = picture_paths(args.images)
     if len(args.images) == 1 and len(pictures) == 1:  # one picture named: one that is none is answered at once
         require_picture(pictures[0])
-    expect = _expected(args)
     stage = Stages()
     stage("loading the model" + (f" and {args.mesh.name}" if args.mesh is not None else ""))
     from ..api import load
