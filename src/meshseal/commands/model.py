@@ -119,6 +119,10 @@ def register(subparsers) -> None:
     evaluate.add_argument("--strength", type=_strength, default=None,
                           help="spread-spectrum models: mark each mesh at this strength, as `meshseal embed "
                                "--strength` does: used as given, unless --max-flip is given too")
+    evaluate.add_argument("--light-gain", type=_strength_up_to(10.0), default=1.0, metavar="G",
+                          help="informed models: light the pictures G times as strongly as the sampler's lights, so "
+                               "that highlights clip (the `clipped` kind of the by-kind table); the mark's FLIP budget "
+                               "is measured as `meshseal embed` measures it, under its own lights (default 1)")
     evaluate.add_argument("--attacks", default=None, metavar="LIST",
                           help="informed models: also read every picture after each of these attacks, comma-"
                                "separated, or 'all' (none, jpeg95, jpeg90, jpeg75, jpeg50, jpeg95_444, jpeg90_444 "
@@ -633,7 +637,8 @@ def run_eval(args) -> int:
         metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(size, 64),
                                       args.sampler, log if args.register else None, views=args.views,
                                       register=args.register, max_flip=max_flip, attacks=attacks,
-                                      strength=1.0 if args.strength is None else args.strength, by_item=folder)
+                                      strength=1.0 if args.strength is None else args.strength, by_item=folder,
+                                      light_gain=args.light_gain)
     else:
         metrics = evaluate(watermarker.model, dataset, args.meshes, args.views, args.seed, size, args.sampler,
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,

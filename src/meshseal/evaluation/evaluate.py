@@ -103,7 +103,7 @@ def _named(decision) -> bool:
 def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = None, seed: int = 0,
                         size: int = 256, sampler: str = "seed", log=None, views: int = 1, register: bool = True,
                         max_flip: float | None = MAX_FLIP, attacks: list[str] | None = None,
-                        strength: float = 1.0, by_item: bool = False) -> dict:
+                        strength: float = 1.0, by_item: bool = False, light_gain: float = 1.0) -> dict:
     """Informed models end to end, as `meshseal detect --register` runs: each test mesh is watermarked
     (with an error-corrected 32-bit ID when the model has a payload schema, else random raw bits),
     rendered `views` times (size x size 8-bit pictures, random views and lights from `sampler`'s
@@ -125,7 +125,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     the match's p-value, on the reading `detect` made without it); `listed` (and `tpr_among_listed`)
     the share detected and named by the owner who lists `LISTED` asset IDs, the mark's among them
     (`detect --expect-ids`: the best match's p-value times the list's length). `by_item`: also
-    `result["by_item"]`, `by_kind`'s figures for each item (its `id`): a folder of the user's own meshes."""
+    `result["by_item"]`, `by_kind`'s figures for each item (its `id`): a folder of the user's own meshes.
+    `light_gain`: the pictures' lights that many times as strong as the sampler's (highlights that clip);
+    the FLIP budget keeps its own lights, as `meshseal embed` measures it."""
     from .. import payload
     from ..api import Watermarker
     from ..mesh import Material, Mesh
@@ -183,6 +185,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             else:
                 normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
             cameras, lights = sample_views(views, sampler, generator)
+            if light_gain != 1.0:
+                lights = type(lights)(lights.position, lights.intensity * light_gain)
             background = random_backgrounds(views, generator)
             pictures = renderer(MeshBatch.from_tensors(positions, normals_marked, uvs_marked, faces, texture_marked),
                                 cameras, lights, size, size, background).image.clamp(0, 1)
@@ -284,7 +288,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
               "pose_error_px": {"median": _finite(pose.nanquantile(0.5)), "p90": _finite(pose.nanquantile(0.9)),
                                 "max": _finite(pose[pose.isfinite()].max()) if bool(pose.isfinite().any()) else None},
               "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size,
-              "n_unreadable": sum(r["unreadable"] for r in rows)}
+              "n_unreadable": sum(r["unreadable"] for r in rows), "light_gain": light_gain}
     if calibrated and max_flip is not None:
         result |= {"max_flip": max_flip, "strength_mean": mean("strength"),
                    "strength_lowered": float(np.mean([r["strength"] < strength for r in rows]))}
@@ -339,7 +343,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             "fpr_threshold", "by_uv_map",
             "tpr_message_named", "tpr_among_listed", "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
             "strength_lowered", "by_kind", "by_item",
-            "seconds_per_picture", "n_meshes", "n_views", "size", "attacks")}
+            "seconds_per_picture", "n_meshes", "n_views", "size", "attacks", "light_gain")}
     return result
 
 
