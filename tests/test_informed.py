@@ -411,3 +411,63 @@ def test_a_light_fit_of_many_images_at_once_is_each_images_own_fit():
         assert torch.allclose(fitted.position[index], own.position[0], atol=1e-5)
         assert torch.allclose(fitted.intensity[index], own.intensity[0], atol=1e-5)
     assert torch.equal(fitted.intensity[2], torch.zeros(1, 3))  # too few pixels: no point light
+
+
+def _lit_plane(strength: float):
+    """A textured plane (1, 3, 128, 128 8-bit picture) under a point light `strength` strong, its camera and
+    the mesh: from about 1.4 up the middle of the plane clips at white."""
+    from meshseal.render import cameras_from_eyes, lights_at
+
+    n = 33
+    u = torch.linspace(0, 1, n)
+    v, w = torch.meshgrid(u, u, indexing="ij")
+    positions = torch.stack([w * 2 - 1, v * 2 - 1, torch.zeros_like(w)], -1).reshape(1, -1, 3)
+    normals = torch.tensor([0.0, 0.0, 1.0]).expand(1, n * n, 3).clone()
+    corner = (torch.arange(n - 1)[:, None] * n + torch.arange(n - 1)[None, :]).reshape(-1)
+    faces = torch.cat([torch.stack([corner, corner + 1, corner + n + 1], -1),
+                       torch.stack([corner, corner + n + 1, corner + n], -1)])
+    texture = 0.45 + 0.25 * torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(0))
+    mesh = MeshBatch.from_tensors(positions, normals, torch.stack([w, v], -1).reshape(1, -1, 2), faces, texture)
+    cameras = cameras_from_eyes(torch.tensor([[0.0, -1.6, 2.2]]))
+    with torch.no_grad():
+        image = MeshRenderer()(mesh, cameras, lights_at(torch.tensor([[0.3, 0.2, 1.4]]), strength), 128, 128).image
+    return torch.round(image.clamp(0, 1) * 255) / 255, cameras, mesh
+
+
+def test_the_light_is_fitted_on_the_pixels_below_white(monkeypatch):
+    """A highlight that clipped says only that the light there is at least that strong: the first light fit
+    leaves such pixels out, and the relit original then fits the rest of the picture as closely as when
+    nothing clipped; fitted as colours, they pull the light off and the prediction misses by several times
+    more. Where nothing clips, the fit is the one it always was."""
+    import meshseal.reading.relight as relight
+    from meshseal.reading.relight import NEAR_WHITE, relit_residual
+
+    def misfit(picture, cameras, mesh):
+        found = relit_residual(mesh, picture, cameras)
+        below = found.seen.amax(1) < NEAR_WHITE
+        return float(((found.seen - found.expected)[below] ** 2).mean()), float((~below).float().mean())
+
+    clean, clean_share = misfit(*_lit_plane(1.0))
+    clipped, share = misfit(*_lit_plane(1.4))
+    monkeypatch.setattr(relight, "_below_white", lambda seen, fragments, n_images, fit_on: fit_on)
+    same_clean, _ = misfit(*_lit_plane(1.0))
+    taken_as_colours, _ = misfit(*_lit_plane(1.4))
+    assert clean_share == 0.0 and same_clean == clean
+    assert 0.3 < share < 0.7
+    assert clipped < 1.2 * clean and taken_as_colours > 2.5 * clipped
+
+
+def test_a_picture_almost_all_white_keeps_every_pixel_for_its_light_fit():
+    from types import SimpleNamespace
+
+    from meshseal.reading.relight import MIN_FIT_PIXELS, _below_white
+
+    size = 2 * MIN_FIT_PIXELS  # pixels a picture
+    seen = torch.full((2 * size, 3), 0.5)
+    seen[:10] = 1.0  # picture 0: ten white pixels among many others
+    seen[size + 10:] = 1.0  # picture 1: fewer than MIN_FIT_PIXELS below white
+    fragments = SimpleNamespace(batch=torch.arange(2).repeat_interleave(size))
+    fit_on = _below_white(seen, fragments, 2, None)
+    assert not bool(fit_on[:10].any()) and bool(fit_on[10:].all())
+    flat = torch.zeros(2 * size, dtype=torch.bool)
+    assert _below_white(torch.full((2 * size, 3), 0.5), fragments, 2, flat) is flat

@@ -12,7 +12,7 @@ from ..imaging import gaussian_blur
 from ..models import WatermarkModel
 from ..reading import footprint as footprints
 from ..reading.footprint import AREA_TEMPLATE_SCALE, picture_footprint, take_off_linear_light
-from ..reading.relight import relit_residual
+from ..reading.relight import NEAR_WHITE, relit_residual
 from ..render import (
     Cameras,
     MeshBatch,
@@ -49,6 +49,7 @@ def _read_along(model: WatermarkModel) -> torch.Tensor:
 
         return colour_direction(model.config.read_colour)
     return model.texture_encoder.colour
+
 
 
 def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: torch.Tensor, pixel: torch.Tensor,
@@ -153,6 +154,9 @@ def spread_evidence(model: WatermarkModel, mesh: MeshBatch, image: torch.Tensor,
         usable = torch.ones_like(gain, dtype=torch.bool) if sampled is None else sampled.usable
         textured = torch.tensor([t is not None for t in mesh.textures], device=usable.device)
         usable = usable & textured.index_select(0, found.material)  # nor in the whitening's statistics
+        # nor where the picture or the prediction is near white: a highlight that clipped kept no mark, and
+        # the clipped picture, or the prediction rounded there by the codec, is no evidence of one
+        usable = usable & (found.seen.amax(1) < NEAR_WHITE) & (expected.amax(1) < NEAR_WHITE)
         colour = _read_along(model).to(image)
         config = model.config
         if fit == 0.0:

@@ -58,6 +58,7 @@ def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch
                    specular=mesh.specular.repeat(n_images, 1), shininess=mesh.shininess.repeat(n_images))
 
 
+
 def fitted_light(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all"):
     """`relit_residual`'s first fit alone (not polished: see `_fit`): the original with the fitted
     ambient factors, the point lights (the same numbers) and the rasterization they were fitted on (a
@@ -91,6 +92,7 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
     albedo = pixels_at(flat.image, fragments)
     fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
     seen = pixels_at(image, fragments)
+    fit_on = _below_white(seen, fragments, n_images, fit_on)
     # the surface points and camera-facing unit normals (`unrender.surface_points`), from the surface's
     points = (surface[0], facing_camera(surface[0], surface[1], on, fragments))
     _, ambient, lights = relight_fragments(mesh, fragments, cameras, seen, albedo, fit_on, predict=False, points=points)
@@ -101,9 +103,26 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
     return fragments, _with_ambient_per_image(mesh, ambient), lights, albedo, surface
 
 
+NEAR_WHITE = 250.0 / 255  # a pixel this bright in any channel (a clipped highlight) is left out of the light fit ...
+MIN_FIT_PIXELS = 64  # ... where the picture keeps this many others; a pixel with such a neighbour, out of the polish
+
+
+def _below_white(seen: torch.Tensor, fragments, n_images: int, fit_on: torch.Tensor | None) -> torch.Tensor | None:
+    """The pixels (P,) the first light fit uses: `fit_on` (None: all) less those the picture shows at
+    NEAR_WHITE or above in any channel, in each picture that keeps MIN_FIT_PIXELS others. A highlight
+    that clipped says only that the light there is at least that strong: fitted as a colour, it pulls a
+    linear fit's light away from the rest of the object, whose relit prediction then misses the picture
+    by more than the mark. A picture without such pixels is fitted as before (the same numbers)."""
+    clipped = seen.amax(1) >= NEAR_WHITE
+    if not bool(clipped.any()):
+        return fit_on
+    left = torch.bincount(fragments.batch[~clipped], minlength=n_images) >= MIN_FIT_PIXELS
+    clipped = clipped & left.index_select(0, fragments.batch)  # a picture almost all white keeps every pixel
+    return ~clipped if fit_on is None else fit_on & ~clipped
+
+
 POLISH_ITERATIONS = 6  # Levenberg-Marquardt steps of the polish at most
 POLISH_PIXELS = 1024  # the polish fits on an even subsample of at most about this many interior pixels
-NEAR_WHITE = 250.0 / 255  # a pixel with a neighbour this bright in any channel is left out of the polish
 POLISH_TOLERANCE = 1e-4  # it stops once a step moves the light less than this times its distance
 
 
