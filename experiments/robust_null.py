@@ -7,6 +7,7 @@ the share under 0.01 and 0.1, and a Kolmogorov-Smirnov p-value against uniform.
 
     python experiments/robust_null.py --data data --meshes 200 [--start 0] [--views 1] [--model robust] [--json OUT] [--register]
         [--fine-grid]   (only the meshes read on the model's fine grid: magnified textures)
+        [--light-gain G]  (pictures lit G times as strongly: highlights that clip)
     python experiments/robust_null.py --merge A.json B.json ...   # one table over runs' --json files (e.g. halves of the split)
 """
 
@@ -75,6 +76,8 @@ def main() -> None:
                         help="only the meshes whose reading takes the model's fine grid (magnified textures)")
     parser.add_argument("--register", action="store_true",
                         help="read without the camera, as `meshseal detect` reads a picture without metadata")
+    parser.add_argument("--light-gain", type=float, default=1.0,
+                        help="light the pictures this many times as strongly as the seed's lights (highlights that clip)")
     args = parser.parse_args()
     if args.merge:
         merge(args.merge)
@@ -91,6 +94,7 @@ def main() -> None:
         batch = charted_item(collate([dataset[index]], "cpu"))
         original = MeshBatch.from_tensors(*(batch[k] for k in ("positions", "normals", "uvs", "faces", "texture")))
         cameras, lights = sample_views(args.views, "seed", generator)
+        lights = type(lights)(lights.position, lights.intensity * args.light_gain)
         backgrounds = random_backgrounds(args.views, generator)
         if args.fine_grid and watermarker.method.encoder.fine_chips not in watermarker.method.grids_to_read(
                 watermarker.original(original)):
