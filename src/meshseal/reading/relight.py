@@ -92,8 +92,7 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
     albedo = pixels_at(flat.image, fragments)
     fit_on = flattest_half(flat.image, fragments) if light_from == "flat" else None
     seen = pixels_at(image, fragments)
-    if polish:  # the reading's fit (registration's keeps every pixel: its texture stage compares band-passed pictures)
-        fit_on = _below_white(seen, fragments, n_images, fit_on)
+    fit_on = _below_white(seen, fragments, n_images, fit_on, 0.0 if polish else REGISTRATION_WHITE)
     # the surface points and camera-facing unit normals (`unrender.surface_points`), from the surface's
     points = (surface[0], facing_camera(surface[0], surface[1], on, fragments))
     _, ambient, lights = relight_fragments(mesh, fragments, cameras, seen, albedo, fit_on, predict=False, points=points)
@@ -106,21 +105,28 @@ def _fit(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str
 
 NEAR_WHITE = 250.0 / 255  # a pixel this bright in any channel (a clipped highlight) is left out of the light fit ...
 MIN_FIT_PIXELS = 64  # ... where the picture keeps this many others; a pixel with such a neighbour, out of the polish
+REGISTRATION_WHITE = 0.05  # registration's fits leave them out only where they are this share of the picture's pixels
 
 
-def _below_white(seen: torch.Tensor, fragments, n_images: int, fit_on: torch.Tensor | None) -> torch.Tensor | None:
+def _below_white(seen: torch.Tensor, fragments, n_images: int, fit_on: torch.Tensor | None,
+                 share: float = 0.0) -> torch.Tensor | None:
     """The pixels (P,) the first light fit uses: `fit_on` (None: all) less those the picture shows at
     NEAR_WHITE or above in any channel, in each picture that keeps MIN_FIT_PIXELS others. A highlight
     that clipped says only that the light there is at least that strong: fitted as a colour, it pulls a
     linear fit's light away from the rest of the object, whose relit prediction then misses the picture
-    by more than the mark. A picture without such pixels is fitted as before (the same numbers). The
-    reading's fit only: left out of registration's fits too, they moved four of benchmarks/registration.py's
-    110 registered poses, and one of them (test mesh 63) lost its message; none was detected that was not."""
+    by more than the mark. A picture without such pixels is fitted as before (the same numbers).
+    Registration's fits (`share` REGISTRATION_WHITE) leave them out only where they are that share of a
+    view's pixels or more: left out wherever a few texels are near white, they moved four of
+    benchmarks/registration.py's 110 registered poses and one of them (test mesh 63) lost its message."""
     clipped = seen.amax(1) >= NEAR_WHITE
     if not bool(clipped.any()):
         return fit_on
-    left = torch.bincount(fragments.batch[~clipped], minlength=n_images) >= MIN_FIT_PIXELS
-    clipped = clipped & left.index_select(0, fragments.batch)  # a picture almost all white keeps every pixel
+    count = torch.bincount(fragments.batch[clipped], minlength=n_images)
+    left = torch.bincount(fragments.batch[~clipped], minlength=n_images)
+    taken = (left >= MIN_FIT_PIXELS) & (count > share * (count + left))  # a picture almost all white keeps every pixel
+    clipped = clipped & taken.index_select(0, fragments.batch)
+    if not bool(clipped.any()):
+        return fit_on
     return ~clipped if fit_on is None else fit_on & ~clipped
 
 
