@@ -449,7 +449,7 @@ def test_the_light_is_fitted_on_the_pixels_below_white(monkeypatch):
 
     clean, clean_share = misfit(*_lit_plane(1.0))
     clipped, share = misfit(*_lit_plane(1.4))
-    monkeypatch.setattr(relight, "_below_white", lambda seen, fragments, n_images, fit_on: fit_on)
+    monkeypatch.setattr(relight, "_below_white", lambda seen, fragments, n_images, fit_on, share=0.0: fit_on)
     same_clean, _ = misfit(*_lit_plane(1.0))
     taken_as_colours, _ = misfit(*_lit_plane(1.4))
     assert clean_share == 0.0 and same_clean == clean
@@ -471,3 +471,7 @@ def test_a_picture_almost_all_white_keeps_every_pixel_for_its_light_fit():
     assert not bool(fit_on[:10].any()) and bool(fit_on[10:].all())
     flat = torch.zeros(2 * size, dtype=torch.bool)
     assert _below_white(torch.full((2 * size, 3), 0.5), fragments, 2, flat) is flat
+    # registration's rule: only a picture whose near-white pixels are at least `share` of its own
+    few = _below_white(seen, fragments, 2, None, share=0.05)  # picture 0: 10 of 128 (7.8 %): left out
+    assert not bool(few[:10].any()) and bool(few[10:].all())
+    assert _below_white(seen, fragments, 2, flat, share=0.1) is flat  # 7.8 % is under a tenth: all kept
