@@ -72,14 +72,18 @@ def require_picture(path) -> None:
         return
     if path.stat().st_size == 0:
         raise MeshsealError(f"{path}: image file is empty")
+    import warnings
+
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path):
-            pass
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the reading judges the size
+            with Image.open(path):
+                pass
     except UnidentifiedImageError:
         raise MeshsealError(f"{path}: not a readable image (not an image format PIL reads)") from None
-    except (OSError, ValueError, SyntaxError):  # recognised but damaged, or unreadable: the reading says which
+    except Exception:  # noqa: BLE001 - recognised but damaged, too large, unreadable: the reading says which
         pass
 
 
