@@ -49,7 +49,10 @@ BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", 
                  ["embed", BUNNY, "-o", "out.glb", "--message", "ab", "--views", "0", "--preview", "sheet.png"],
                  # a message the model cannot carry (its size from the weights file's header)
                  ["embed", BUNNY, "-o", "out.glb", "--message", "toolong"], ["embed", BUNNY, "-o", "out.glb", "--id", str(2 ** 32)],
-                 ["detect", BUNNY, "--mesh", BUNNY, "--expect", "toolong"]]
+                 ["detect", BUNNY, "--mesh", BUNNY, "--expect", "toolong"],
+                 # attacks: an unknown name, one that moves the camera without --register
+                 ["eval", "--data", FIXTURES, "--attacks", "jpeg90,no_such_attack"],
+                 ["eval", "--data", FIXTURES, "--attacks", "resize0.5"]]
 
 
 def probe(argvs):
@@ -74,6 +77,7 @@ def test_bad_arguments_are_refused_without_the_heavy_libraries(tmp_path):
     assert "out.txt: unsupported mesh format" in result["stderr"] and "--fov must be between" in result["stderr"]
     assert result["stderr"].count("text message is 7 bytes in UTF-8; a 64-bit model carries at most 4") == 2
     assert "ID must be an integer from 0 to 4294967295" in result["stderr"]
+    assert "unknown attack(s) no_such_attack" in result["stderr"] and "change the picture's camera" in result["stderr"]
     assert "no_such_mesh.glb: no such mesh file" in result["stderr"]
     assert "unknown model 'no_such_model'" in result["stderr"] and "README.md: unsupported mesh format" in result["stderr"]
 

@@ -583,6 +583,17 @@ def run_eval(args) -> int:
     # neither a dataset nor a folder: answered before the heavy imports (a folder's contents are checked after)
     if not args.data.is_dir():
         raise MeshsealError(f"{args.data}: not a meshseal dataset (no manifest) nor a folder of meshes")
+    attacks = None
+    if args.attacks is not None:  # the names too (`evaluation.attacks` parses them without numpy or torch)
+        from ..evaluation.attacks import GEOMETRIC, parse
+
+        try:
+            attacks = parse(args.attacks)
+        except ValueError as error:
+            raise MeshsealError(f"--attacks: {error}") from None
+        moved = [name for name in attacks if name in GEOMETRIC]
+        if moved and not args.register:
+            raise MeshsealError(f"--attacks {','.join(moved)} change the picture's camera: add --register")
     from ..api import load
     from ..data.dataset import MeshDataset
     from ..training.distortions import Distortions2D, Distortions3D
@@ -615,19 +626,8 @@ def run_eval(args) -> int:
     if len(dataset) == 0:
         kinds_note = f" of texture kinds {','.join(kinds)}" if kinds else ""
         raise MeshsealError(f"{args.data}: the {args.split} split has no items{kinds_note}")
-    attacks = None
-    if args.attacks is not None:
-        from ..evaluation.attacks import GEOMETRIC, parse
-
-        try:
-            attacks = parse(args.attacks)
-        except ValueError as error:
-            raise MeshsealError(f"--attacks: {error}") from None
-        if not watermarker.informed:
-            raise MeshsealError(f"--attacks is for informed models; '{watermarker.name}' reads pictures blind")
-        moved = [name for name in attacks if name in GEOMETRIC]
-        if moved and not args.register:
-            raise MeshsealError(f"--attacks {','.join(moved)} change the picture's camera: add --register")
+    if attacks is not None and not watermarker.informed:
+        raise MeshsealError(f"--attacks is for informed models; '{watermarker.name}' reads pictures blind")
     if args.register or attacks:
         if not watermarker.informed:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")

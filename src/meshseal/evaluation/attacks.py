@@ -12,12 +12,16 @@ from __future__ import annotations
 
 import io
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-import numpy as np
-from PIL import Image
+if TYPE_CHECKING:  # numpy and Pillow are imported where an attack runs: parsing a list of names needs neither
+    import numpy as np
 
 
 def _encode(picture: np.ndarray, format_: str, **options) -> np.ndarray:
+    import numpy as np
+    from PIL import Image
+
     buffer = io.BytesIO()
     Image.fromarray(picture).save(buffer, format=format_, **options)
     buffer.seek(0)
@@ -40,6 +44,9 @@ def webp(quality: int) -> Callable:
 def resize(factor: float) -> Callable:
     """Resized by `factor` (bicubic, as most image tools)."""
     def attack(picture, rng):
+        import numpy as np
+        from PIL import Image
+
         height, width = picture.shape[:2]
         size = (max(8, round(width * factor)), max(8, round(height * factor)))
         return np.asarray(Image.fromarray(picture).resize(size, Image.Resampling.BICUBIC))
@@ -61,6 +68,9 @@ def screenshot(width: int = 400, height: int = 320, bar: int = 24) -> Callable:
     `bar`-pixel title bar on top: a screenshot of a viewer (a picture larger than the window is shrunk
     to fit first)."""
     def attack(picture, rng):
+        import numpy as np
+        from PIL import Image
+
         canvas = np.full((height, width, 3), 236, dtype=np.uint8)
         canvas[:bar] = 60
         image = Image.fromarray(picture)
@@ -79,6 +89,8 @@ def screenshot(width: int = 400, height: int = 320, bar: int = 24) -> Callable:
 def brightness_gamma(gain: float = 1.2, gamma: float = 0.9) -> Callable:
     """Brighter by `gain`, then a gamma curve (a photo editor's quick fix)."""
     def attack(picture, rng):
+        import numpy as np
+
         x = np.clip(picture.astype(np.float64) / 255.0 * gain, 0.0, 1.0) ** gamma
         return np.round(x * 255.0).astype(np.uint8)
     return attack
@@ -87,6 +99,8 @@ def brightness_gamma(gain: float = 1.2, gamma: float = 0.9) -> Callable:
 def gaussian_noise(sigma: float = 2.0) -> Callable:
     """Additive Gaussian noise of `sigma` (in 8-bit levels)."""
     def attack(picture, rng):
+        import numpy as np
+
         noisy = picture.astype(np.float64) + rng.normal(0.0, sigma, picture.shape)
         return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
     return attack
@@ -137,4 +151,6 @@ def parse(text: str) -> list[str]:
 
 def apply(name: str, picture: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Attack `name` on an (H, W, 3) uint8 picture -> a uint8 picture."""
+    import numpy as np
+
     return ATTACKS[name](np.ascontiguousarray(picture, dtype=np.uint8), rng)
