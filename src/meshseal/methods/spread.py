@@ -51,7 +51,6 @@ def _read_along(model: WatermarkModel) -> torch.Tensor:
     return model.texture_encoder.colour
 
 
-
 def _affine_where_it_fits(seen: torch.Tensor, expected: torch.Tensor, colour: torch.Tensor, pixel: torch.Tensor,
                           shape: tuple[int, int, int], sigma: float, highpass: float) -> torch.Tensor:
     """The prediction (P, 3) to read the picture against: in each picture where the local affine fit of

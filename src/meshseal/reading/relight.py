@@ -58,7 +58,6 @@ def _with_ambient_per_image(mesh: MeshBatch, ambient: torch.Tensor) -> MeshBatch
                    specular=mesh.specular.repeat(n_images, 1), shininess=mesh.shininess.repeat(n_images))
 
 
-
 def fitted_light(mesh: MeshBatch, image: torch.Tensor, cameras: Cameras, light_from: str = "all"):
     """`relit_residual`'s first fit alone (not polished: see `_fit`): the original with the fitted
     ambient factors, the point lights (the same numbers) and the rasterization they were fitted on (a
