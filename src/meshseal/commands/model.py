@@ -119,7 +119,7 @@ def register(subparsers) -> None:
     evaluate.add_argument("--strength", type=_strength, default=None,
                           help="spread-spectrum models: mark each mesh at this strength, as `meshseal embed "
                                "--strength` does: used as given, unless --max-flip is given too")
-    evaluate.add_argument("--light-gain", type=_strength_up_to(10.0), default=1.0, metavar="G",
+    evaluate.add_argument("--light-gain", type=_light_gain, default=1.0, metavar="G",
                           help="informed models: light the pictures G times as strongly as the sampler's lights, so "
                                "that highlights clip (the `clipped` kind of the by-kind table); the mark's FLIP budget "
                                "is measured as `meshseal embed` measures it, under its own lights (default 1)")
@@ -211,6 +211,17 @@ def _strength_up_to(limit: float):
 
 
 _strength = _strength_up_to(100.0)
+
+
+def _light_gain(text: str) -> float:
+    """eval --light-gain: a factor in (0, 10] on the pictures' lights (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
+    if not 0.0 < value <= 10.0:
+        raise argparse.ArgumentTypeError(f"a light gain is in (0, 10], got {text}")
+    return value
 
 
 def _budget(text: str) -> float:
