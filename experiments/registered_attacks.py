@@ -4,7 +4,8 @@ view each, marked as `meshseal embed` marks (FLIP budget 0.03; `--strength S`: a
 `meshseal detect` reads them (registered, second look), as PNG and after each picture attack; each
 slice draws its own views and messages from the seed, so a slice's pictures are not those of a single
 run over all meshes. `--merge` adds slices up: per attack the pictures, detected, exact, named, the
-detected rate with the camera known (where the attack keeps the frame) and the mean seconds; then the
+detected rate with the camera known (where the attack keeps the frame or is a central crop,
+`evaluation.attacks.cropped_camera`) and the mean seconds; then the
 detected rates by kind of picture (plain, magnified, minified, clipped, small).
 
     python experiments/registered_attacks.py --data data --start 0 --meshes 50 --json A.json

@@ -78,3 +78,28 @@ def test_pictures_are_sorted_into_the_kinds_the_report_splits_out():
     # (a mark without a coarser grid for them), and cells just over it are not.
     assert picture_kinds(encoder, 128, pictures, masks, MINIFIED_BELOW * 0.9)[0] == ["minified"]
     assert picture_kinds(encoder, 128, pictures, masks, MINIFIED_BELOW * 1.1)[0] == ["plain"]
+
+
+def test_a_central_crop_has_the_camera_that_renders_it():
+    """`cropped_camera`: the original rendered with the crop's camera at the crop's size is the crop."""
+    import torch
+
+    from pathlib import Path
+
+    from meshseal.mesh import load, normalize, to_z_up
+    from meshseal.render import Cameras, MeshBatch, MeshRenderer, lights_at
+
+    bunny = Path(__file__).parent / "fixtures" / "bunny.glb"
+    mesh = MeshBatch.from_mesh(normalize(to_z_up(load(bunny))))
+    cameras = Cameras(torch.tensor([[0.4, -1.6, 0.8]]), torch.tensor([[0.05, 0.0, 0.1]]), torch.tensor([[0.0, 0.0, 1.0]]))
+    lights = lights_at(torch.tensor([[2.0, -1.0, 2.0]]))
+    renderer = MeshRenderer()
+    whole = renderer(mesh, cameras, lights, 96, 96).image.clamp(0, 1)[0].permute(1, 2, 0).numpy()
+    crop = attacks.apply("crop0.8", np.round(whole * 255).astype(np.uint8), np.random.default_rng(0))
+    camera = attacks.cropped_camera("crop0.8", cameras, 96, 96)
+    again = renderer(mesh, camera, lights, crop.shape[0], crop.shape[1]).image.clamp(0, 1)[0].permute(1, 2, 0).numpy()
+    inner = (slice(2, -2), slice(2, -2))  # at the frame the splats of pixels outside the crop are missing
+    assert crop.shape == (77, 77, 3) and np.abs(np.round(again * 255) - crop)[inner].max() <= 1
+    assert not np.array_equal(crop, np.round(whole[10:87, 10:87] * 255))  # the object fills the frame: a crop shows less of it
+    assert attacks.cropped_camera("screenshot", cameras, 96, 96) is None  # placed at random: no camera
+    assert attacks.cropped_camera("crop0.8", cameras, 96, 128) is None  # not square: not worked out

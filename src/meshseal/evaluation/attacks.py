@@ -53,12 +53,16 @@ def resize(factor: float) -> Callable:
     return attack
 
 
+def _central_window(height: int, width: int, keep: float) -> tuple[int, int, int, int]:
+    """(top, left, h, w) of `central_crop(keep)`'s window in a height x width picture."""
+    h, w = max(8, round(height * keep)), max(8, round(width * keep))
+    return (height - h) // 2, (width - w) // 2, h, w
+
+
 def central_crop(keep: float) -> Callable:
     """The central `keep` of each side."""
     def attack(picture, rng):
-        height, width = picture.shape[:2]
-        h, w = max(8, round(height * keep)), max(8, round(width * keep))
-        top, left = (height - h) // 2, (width - w) // 2
+        top, left, h, w = _central_window(picture.shape[0], picture.shape[1], keep)
         return picture[top:top + h, left:left + w].copy()
     return attack
 
@@ -130,6 +134,28 @@ ATTACKS: dict[str, Callable] = {
 }
 GEOMETRIC = {"resize0.5", "resize0.75", "resize1.5", "crop0.8", "screenshot", "jpeg90_screenshot", "jpeg75_screenshot",
              "jpeg75_crop0.8"}  # the camera of the picture changes
+
+
+CROPS = {"crop0.8": 0.8, "jpeg75_crop0.8": 0.8}  # the central crops: `keep` of each side
+
+
+def cropped_camera(name: str, cameras, height: int, width: int):
+    """The camera (`render.Cameras`) that took the picture attack `name` leaves of a height x width
+    picture taken with `cameras` (centred principal point), where the attack is a central crop (CROPS);
+    None for any other attack that changes the frame (a screenshot's canvas is placed at random). With
+    it a crop is read with its camera known, so that what registration costs there can be told from
+    what the crop took (`evaluation.evaluate_registered`)."""
+    if name not in CROPS:
+        return None
+    from dataclasses import replace
+
+    from ..reading.registration import crop_intrinsics
+
+    top, left, h, w = _central_window(height, width, CROPS[name])
+    if h != w or height != width:  # `crop_intrinsics` takes a square box out of a square picture
+        return None
+    fov, principal = crop_intrinsics(height, width, (left + w / 2, top + h / 2, h / 2), cameras.fov_y)
+    return replace(cameras, fov_y=fov, principal=principal)
 
 
 # The asset attacks (`asset_attacks.ASSET_ATTACKS`, on the marked mesh before it is rendered), named here

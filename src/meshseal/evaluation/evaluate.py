@@ -21,7 +21,7 @@ from ..render import MeshRenderer
 from ..methods.batches import batch_cell_width, batch_mark_grid, batch_texels_used, charted_item, unpadded
 from .asset_attacks import ASSET_ATTACKS
 from .asset_attacks import apply as attack_asset
-from .attacks import GEOMETRIC
+from .attacks import GEOMETRIC, cropped_camera
 from .attacks import apply as attack_picture
 from .metrics import (
     BUDGET_VIEWS,
@@ -120,7 +120,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     `attacks` (names of `meshseal.attacks`): each 8-bit picture is also read after each attack (JPEG,
     WebP, resizing, crops, a screenshot, ...), registered (or, without `register`, with its camera:
     photometric attacks only), and `result["attacks"]` gives per attack the pictures, the share
-    detected and read exactly, the bit accuracy and the seconds a picture. `named` (and
+    detected and read exactly, the bit accuracy and the seconds a picture; registered, also the share
+    detected with the camera known (`<attack>_known_camera`: the true camera, or the crop's own,
+    `attacks.cropped_camera`; none for a screenshot), what registration cost. `named` (and
     `tpr_message_named`) is the share detected by the owner who names the message (`detect --expect`:
     the match's p-value, on the reading `detect` made without it); `listed` (and `tpr_among_listed`)
     the share detected and named by the owner who lists `LISTED` asset IDs, the mark's among them
@@ -253,8 +255,9 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                 decision = None if got is None else watermarker.decide([got])
                 seconds = time.perf_counter() - started
                 known_hit = None  # registered, the same picture read with its camera too: what registration cost
-                if register and not _frame_changed(name):
-                    known_read = _read_or_none(watermarker, hit, original, camera=cameras[[view]])
+                camera = cameras[[view]] if not _frame_changed(name) else cropped_camera(name, cameras[[view]], size, size)
+                if register and camera is not None:  # a crop's camera is known too (`attacks.cropped_camera`)
+                    known_read = _read_or_none(watermarker, hit, original, camera=camera)
                     known_hit = coded and known_read is not None and bool(watermarker.decide([known_read]).detected)
                 attacked[name].append({
                     "detected_known": known_hit,

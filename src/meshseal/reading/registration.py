@@ -97,6 +97,7 @@ OUTLINE_FACES = 8000  # ... of at most this many faces (`outline_mesh`) ...
 OUTLINE_SHARE = 0.6  # ... where the decimation gets it to this share of the faces or fewer (open sheets' borders stay) ...
 OUTLINE_IOU = 0.97  # ... where its silhouette overlaps the whole mesh's by at least this in each of OUTLINE_VIEWS views
 OUTLINE_VIEWS = 12
+LENSES = (0.8, 1.25)  # a second look also reads under these other lenses: the tangent of half the field of view times each (a central 80 % crop's; a screenshot's larger canvas)
 ALTERNATIVES = 3  # the next-best candidate views a Registration offers for a second look (see `alternatives`)
 DISTANCE = 3.5
 FOV = 60.0
@@ -1444,17 +1445,39 @@ def _refine_candidates(mesh: MeshBatch, outline: MeshBatch, cameras: Cameras, le
 
 def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, background: torch.Tensor,
              candidates: int = 400, keep: int = 8, shading_weight: float = 0.3, fov_y: float = FOV,
-             texture_refine: bool = True, retry: bool = True) -> Registration:
+             texture_refine: bool = True, retry: bool = True, start: Cameras | None = None) -> Registration:
     """Find the camera of `picture` (3, H, W) in [0, 1] of `mesh` (one mesh in the canonical frame);
     `mask` (H, W) marks the object's pixels; `fov_y` is the picture's vertical field of view as first
     assumed (the texture stage refines it where the texture says otherwise; the principal point is
     assumed at the centre). `retry`: where the texture does not confirm the camera, try RETRY_KEEP more
-    views (step 4); off for a quick scan (`register_with_masks`' `quick`). See the module docstring."""
+    views (step 4); off for a quick scan (`register_with_masks`' `quick`). `start`: a camera of the
+    whole picture found before under another field of view: no search (steps 1, 2 and 4), it is moved
+    along its view axis so the object keeps its size under `fov_y` (`_dollied`) and refined from there
+    on its silhouettes (and, with `texture_refine`, the texture; `lens_alternatives`). See the module
+    docstring."""
     target, target_mask, box, inside = frame_picture(picture, mask, SEARCH_SIZE, background)
     levels = _targets(target, target_mask, inside)
     fov, principal = crop_intrinsics(picture.shape[-2], picture.shape[-1], box[0], fov_y)
     seen = _seen_part(mask, box[0], COMPARE_SIZE)
     outline = outline_mesh(mesh)
+
+    def on_silhouettes(camera: Cameras) -> Cameras:
+        """The picked candidate refined finely on silhouettes: the camera of the whole picture."""
+        for sigma in FINE_SILHOUETTE_SIGMAS:
+            camera = _refine_silhouettes(outline, camera, levels[SEARCH_SIZE], sigma)
+        return replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
+
+    def on_texture(camera: Cameras) -> Cameras:
+        """(3.) The whole picture's camera refined on the texture."""
+        return _on_texture(mesh, camera, picture, mask) if texture_refine else camera
+
+    def finish(camera: Cameras) -> Cameras:
+        return on_texture(on_silhouettes(camera))
+
+    if start is not None:
+        framed = replace(_dollied(mesh, start, fov_y), fov_y=fov, principal=principal)
+        camera = finish(_coarse_silhouettes(outline, framed, levels))
+        return Registration(camera, box[0], silhouette_iou(mesh, camera, mask), ())
 
     # 1. Candidate views all around, moved so the object fills the crop as in the picture, and scored.
     directions = fibonacci_directions(candidates)
@@ -1485,26 +1508,6 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
         others = sorted((i for i in range(len(refined)) if i != chosen and math.isfinite(misfits[i])),
                         key=misfits.__getitem__)
 
-    def on_silhouettes(camera: Cameras) -> Cameras:
-        """The picked candidate refined finely on silhouettes: the camera of the whole picture."""
-        for sigma in FINE_SILHOUETTE_SIGMAS:
-            camera = _refine_silhouettes(outline, camera, levels[SEARCH_SIZE], sigma)
-        return replace(camera, fov_y=fov_y, principal=(0.0, 0.0))
-
-    def on_texture(camera: Cameras) -> Cameras:
-        """(3.) The whole picture's camera refined on the texture."""
-        if texture_refine:
-            refined = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
-            # Where the original's texture explains the picture poorly (another engine's light and texture
-            # filtering), the texture stage can drift off a pose the silhouette had right: the silhouette
-            # is a second, independent witness, and a move it clearly disagrees with is not taken.
-            if silhouette_iou(mesh, refined, mask) >= silhouette_iou(mesh, camera, mask) - TEXTURE_IOU_SLACK:
-                camera = refined
-        return camera
-
-    def finish(camera: Cameras) -> Cameras:
-        return on_texture(on_silhouettes(camera))
-
     camera = finish(refined[[chosen]])
     if taken_at_once:
         alternatives = tuple(Alternative(search[[best[i]]], lambda c: on_silhouettes(_coarse_silhouettes(outline, c, levels)),
@@ -1528,6 +1531,60 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
     return Registration(camera, box[0], silhouette_iou(mesh, camera, mask), alternatives)
 
 
+def _on_texture(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor) -> Cameras:
+    """(3.) The whole picture's `camera` refined on the texture (`refine_on_texture_twice`), kept only
+    where its silhouette still overlaps the picture's (`mask` (H, W)) about as well."""
+    refined = refine_on_texture_twice(mesh, camera, picture[None].clamp(0, 1), mask[None].float())
+    # Where the original's texture explains the picture poorly (another engine's light and texture
+    # filtering), the texture stage can drift off a pose the silhouette had right: the silhouette
+    # is a second, independent witness, and a move it clearly disagrees with is not taken.
+    if silhouette_iou(mesh, refined, mask) >= silhouette_iou(mesh, camera, mask) - TEXTURE_IOU_SLACK:
+        camera = refined
+    return camera
+
+
+def _dollied(mesh: MeshBatch, camera: Cameras, fov_y: float) -> Cameras:
+    """`camera` (one) moved along its view axis so that, under the field of view `fov_y`, the object's
+    centre plane shows at the size it had under the camera's own: the eye's distance to that plane
+    times the ratio of the tangents of half the fields of view (a zoom and a dolly agree there)."""
+    centre = mesh.positions[0].mean(0).to(camera.eye)
+    forward = F.normalize(camera.at - camera.eye, dim=-1)
+    depth = ((centre - camera.eye) * forward).sum(-1, keepdim=True)
+    ratio = math.tan(math.radians(camera.fov_y) / 2) / math.tan(math.radians(fov_y) / 2)
+    eye = camera.eye + forward * depth * (1.0 - ratio)
+    return replace(camera, eye=eye, at=eye + (camera.at - camera.eye), fov_y=fov_y)
+
+
+def lens_alternatives(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, background: torch.Tensor,
+                      found: Registration, fov_y: float = FOV) -> Registration:
+    """`found` with the other lenses of LENSES as its last alternatives for the second look: the
+    registered camera under each lens (the tangent of half of `fov_y` times each), moved along its
+    view axis so that the object keeps its size (`_dollied`), `rough()` refined on the picture's
+    silhouettes under that lens (`register`'s `start`, no search), `finish()` on the texture and then
+    sharpened (`sharpen`: a fine texture loses the mark to a tenth of a pixel, as the second look
+    finds for the registered camera).
+
+    A crop keeps the camera's focal length in pixels on fewer pixels: a central 80 % crop has 0.8
+    times the tangent of the field of view assumed, and registered under the assumed lens its camera
+    can end a pixel or more off, which a luminance mark does not survive; a screenshot's larger
+    canvas is the other way round. The texture misfit does not tell the lenses apart reliably (taken
+    where it was lower, it moved two of the registration benchmark's PNG pictures of the assumed
+    lens off theirs, and left crops whose misfit is alike under both): the keyed reading does, on
+    the second look, which pays for each alternative in the p-value (`second_look.look_again`)."""
+    mask = mask if mask.dim() == 2 else mask[0]
+
+    def finish(camera: Cameras) -> Cameras:  # the texture stage, then sharpened as a second look sharpens
+        return sharpen(mesh, _on_texture(mesh, camera, picture, mask), picture[None].clamp(0, 1), mask[None].float())
+
+    alternatives = []
+    for lens in LENSES:
+        other = math.degrees(2 * math.atan(lens * math.tan(math.radians(fov_y) / 2)))
+        silhouettes = lambda camera, other=other: register(mesh, picture, mask, background, fov_y=other,  # noqa: E731
+                                                            texture_refine=False, start=camera).camera
+        alternatives.append(Alternative(found.camera, silhouettes, finish))
+    return replace(found, alternatives=(*found.alternatives, *alternatives))
+
+
 def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torch.Tensor], background: torch.Tensor,
                         fov_y: float = FOV, recut=None, quick: bool = False) -> Registration:
     """`register` with each of several guesses of the object's pixels (H, W; after the first, also a
@@ -1541,23 +1598,26 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
     the guess (IoU under RECUT_BELOW_IOU: on a plain background whose frame cuts the object off, a
     registration can be right yet over ACCEPT_MISFIT), up to RECUT_ROUNDS in a row while they fit
     better. A new cut much like its guess is registered all the same: registration on a slightly
-    different mask can land on a better view. `quick` (a scan of many pictures, most of them of other
-    meshes, where those take most of the time): no recut and no retry of more views (`register`), at
-    the cost of the pictures of the right mesh only they register."""
+    different mask can land on a better view. The registration found carries the other lenses as its
+    last alternatives (`lens_alternatives`). `quick` (a scan of many pictures, most of them of other
+    meshes, where those take most of the time): no recut, no other lens and no retry of more views
+    (`register`), at the cost of the pictures of the right mesh only they register."""
     first = register(mesh, picture, masks[0], background, fov_y=fov_y, retry=not quick)
+    lenses = (lambda found, mask: found) if quick else (  # noqa: E731
+        lambda found, mask: lens_alternatives(mesh, picture, mask, background, found, fov_y))
     if len(masks) == 1 and (recut is None or quick or first.iou >= RECUT_BELOW_IOU):
-        return first  # nothing to compare it with: its misfit is not needed
+        return lenses(first, masks[0])  # nothing to compare it with: its misfit is not needed
     everywhere = torch.ones_like(masks[0][None], dtype=picture.dtype)
-    best, best_misfit, cut_from = None, math.inf, None
+    best, best_misfit, best_mask, cut_from = None, math.inf, masks[0], None
 
     def attempt(mask: torch.Tensor, found: Registration | None = None) -> bool:
         """Register on `mask` (unless `found` already is), keep it if it fits best; whether it fit
         better than the best before."""
-        nonlocal best, best_misfit
+        nonlocal best, best_misfit, best_mask
         found = found if found is not None else register(mesh, picture, mask, background, fov_y=fov_y, retry=not quick)
         misfit = texture_misfit(mesh, found.camera, picture[None].clamp(0, 1), everywhere, PICK_SIGMAS)
         if best is None or misfit < best_misfit:
-            best, best_misfit = found, misfit
+            best, best_misfit, best_mask = found, misfit, mask
             return True
         return False
 
@@ -1579,4 +1639,4 @@ def register_with_masks(mesh: MeshBatch, picture: torch.Tensor, masks: list[torc
                 break
         if best_misfit < ACCEPT_MISFIT:
             break
-    return best
+    return lenses(best, best_mask)
