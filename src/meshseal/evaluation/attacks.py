@@ -147,15 +147,15 @@ def cropped_camera(name: str, cameras, height: int, width: int):
     what the crop took (`evaluation.evaluate_registered`)."""
     if name not in CROPS:
         return None
+    import math
     from dataclasses import replace
 
-    from ..reading.registration import crop_intrinsics
-
     top, left, h, w = _central_window(height, width, CROPS[name])
-    if h != w or height != width:  # `crop_intrinsics` takes a square box out of a square picture
+    if h != w or height != width:  # a square window of a square picture (as `registration.crop_intrinsics`)
         return None
-    fov, principal = crop_intrinsics(height, width, (left + w / 2, top + h / 2, h / 2), cameras.fov_y)
-    return replace(cameras, fov_y=fov, principal=principal)
+    half, centre_x, centre_y = h / 2, left + w / 2, top + h / 2
+    fov = math.degrees(2 * math.atan(math.tan(math.radians(cameras.fov_y) / 2) * 2 * half / height))
+    return replace(cameras, fov_y=fov, principal=((width / 2 - centre_x) / half, (centre_y - height / 2) / half))
 
 
 # The asset attacks (`asset_attacks.ASSET_ATTACKS`, on the marked mesh before it is rendered), named here
