@@ -397,8 +397,9 @@ def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
 def test_registered_eval_also_reads_each_attacked_picture_with_its_camera(dataset, monkeypatch):
     """Registered, each attacked picture whose frame the attack keeps is also read with its true camera
     (`detected_known_camera`: what registration cost after that attack); untouched, that reading is the
-    plain camera-known one; a crop changes the frame, so it has none. (Registration itself is refused
-    here, to keep the test short: the camera-known readings are what it is about.)"""
+    plain camera-known one; a central crop is read with the crop's own camera (`cropped_camera`); a
+    screenshot's canvas, placed at random, has none. (Registration itself is refused here, to keep the
+    test short: the camera-known readings are what it is about.)"""
     from meshseal.evaluation import evaluate as E
     from meshseal.data.dataset import MeshDataset
 
@@ -406,11 +407,12 @@ def test_registered_eval_also_reads_each_attacked_picture_with_its_camera(datase
     monkeypatch.setattr(E, "_read_or_none", lambda w, p, o, **options:
                         None if options.get("register") else reading(w, p, o, **options))
     result = E.evaluate_registered(meshseal.load().model, MeshDataset(dataset, "test"), n_meshes=1, size=64,
-                                   attacks=["none", "resize0.75", "crop0.8"])
+                                   attacks=["none", "resize0.75", "crop0.8", "screenshot"])
     rows = result["attacks"]
     assert rows["none"]["detected_known_camera"] == result["tpr_known_camera"]
     assert 0.0 <= rows["resize0.75"]["detected_known_camera"] <= 1.0
-    assert "detected_known_camera" not in rows["crop0.8"]
+    assert 0.0 <= rows["crop0.8"]["detected_known_camera"] <= 1.0
+    assert "detected_known_camera" not in rows["screenshot"]
 
 
 def test_an_attacks_pictures_do_not_depend_on_the_others_in_the_list(dataset, monkeypatch):
