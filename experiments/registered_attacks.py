@@ -51,7 +51,8 @@ def run(args) -> None:
                      "detected_known_camera": result["tpr_known_camera"], "seconds": result["seconds_per_picture"]}}
     for name, entry in result.get("attacks", {}).items():
         rows[name] = {"pictures": entry["pictures"], "seconds": entry["seconds"],
-                      "detected_known_camera": entry.get("detected_known_camera")} | {k: entry[k] for k in FIELDS}
+                      "detected_known_camera": entry.get("detected_known_camera"),
+                      "pose_error_px_median": entry.get("pose_error_px_median")} | {k: entry[k] for k in FIELDS}
     payload = {"start": args.start, "meshes": len(dataset), "strength": args.strength, "rows": rows,
                "by_kind": result.get("by_kind", {}), "by_item": result.get("by_item", {}),
                "visibility": {key: result.get(key) for key in ("flip_object", "flip_object_p95", "psnr_object",

@@ -531,9 +531,9 @@ def test_a_magnified_texture_is_marked_on_finer_cells_of_a_resampled_texture_and
 
 def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     """A registered reading whose camera is a wrong (twin) view: `look_again` reads it under the
-    registration's alternatives and keeps the one whose mark is found; the p-value pays x3 at the
-    registered camera or its sharpened one and x3K at an alternative; unmarked pictures stay
-    undetected; pooling skips it."""
+    registration's alternatives and keeps the one whose mark is found; the p-value pays x4 at the
+    registered camera (four stages: it, the matched and sharpened cameras, the nudges, the
+    alternatives) and x4K at an alternative; unmarked pictures stay undetected; pooling skips it."""
     import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
@@ -558,18 +558,18 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     monkeypatch.setattr(api, "LOOK_AGAIN_BELOW", 1.0)  # finish every alternative whatever the first reading says
     again = watermarker.look_again(first, original)
     decision = watermarker.decide([again])
-    assert not plain.detected and decision.detected and again.tries == 6 and not again.second_look
+    assert not plain.detected and decision.detected and again.tries == 8 and not again.second_look
     assert ((torch.tensor([int(b) for b in decision.bits]) == message[0]).float().mean()) >= 0.95
     # the alternative finished is polished (`registration.polish`): the true view stays within hundredths of a pixel
     assert pose_error(original, cameras, again.found, 256, 256) < 0.02
     single = watermarker.decide([replace(again, tries=1)])
-    assert decision.p_value == pytest.approx(min(1.0, 6 * single.p_value), rel=1e-9)
-    # Found at the registered camera: x3 (three stages paid for), nothing else read.
+    assert decision.p_value == pytest.approx(min(1.0, 8 * single.p_value), rel=1e-9)
+    # Found at the registered camera: x4 (four stages paid for), nothing else read.
     direct = watermarker.look_again(registered_at(seen["marked"], cameras, (Alternative(turned),)), original)
-    assert direct.tries == 3 and torch.allclose(direct.found.eye, cameras.eye)
+    assert direct.tries == 4 and torch.allclose(direct.found.eye, cameras.eye)
     # An unmarked picture: no camera finds a mark; pooling keeps the first camera and no factor.
     clean = watermarker.look_again(registered_at(seen["clean"], turned, (Alternative(cameras),)), original)
-    assert not watermarker.decide([clean]).detected and clean.tries == 3
+    assert not watermarker.decide([clean]).detected and clean.tries == 4
     pooled = watermarker.look_again(first, original, search=False)
     assert pooled.tries == 1 and not pooled.second_look and torch.equal(pooled.evidence, first.evidence)
 
@@ -577,8 +577,8 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
 def test_a_camera_a_fraction_of_a_pixel_off_is_sharpened_on_the_reading_residual():
     """A texture finer than the picture's pixels aliases (a 512^2 noise texture on the bunny, seen at
     256^2): a camera 0.19 px off misses the mark. `register.sharpen` brings it within a few hundredths
-    of a pixel of the true camera, and `look_again` reads the mark there, paying x2R (no alternatives:
-    two stages, R sharpening rounds)."""
+    of a pixel of the true camera, and `look_again` reads the mark there, paying x3(R + 1) (no
+    alternatives: three stages, R sharpening rounds)."""
     import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
@@ -600,9 +600,53 @@ def test_a_camera_a_fraction_of_a_pixel_off_is_sharpened_on_the_reading_residual
 
     again = watermarker.look_again(replace(reading, camera="registered", second_look=(picture, mask, ())), original)
     decision = watermarker.decide([again])
-    assert decision.detected and again.tries == 2 * (api.SHARPEN_ROUNDS + 1)
+    assert decision.detected and again.tries == 3 * (api.SHARPEN_ROUNDS + 1)
     assert pose_error(original, cameras, again.found, 256, 256) < 0.05
     assert ((torch.tensor([int(b) for b in decision.bits]) == message[0]).float().mean()) >= 0.95
+
+
+def test_a_second_look_nudges_the_registered_camera_and_pays_for_every_nudge(monkeypatch):
+    """Where the stages before it find nothing (here the block matching and the sharpening are taken
+    out), a second look reads the registered camera nudged each way along six screen moves
+    (`registration.nudges`: 12 cameras, each moving the seen surface by the step, RMS) and keeps the
+    nudge whose reading finds the mark, paying x3 x 12 (three stages without alternatives)."""
+    import meshseal.reading.registration as registration
+    import meshseal.reading.second_look as api
+    from meshseal import payload
+    from meshseal.api import Watermarker
+    from meshseal.render import surface_at_pixels
+
+    model, message, original, marked = _original_and_marked_batches()
+    noise = torch.rand(3, 512, 512, generator=torch.Generator().manual_seed(0))
+    original.textures = [noise]
+    marked.textures = [model.texture_encoder(noise[None], message, 1.0, payload.key_seed(None))[0]]
+    watermarker = Watermarker(model)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        picture = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+        fragments, _, _ = surface_at_pixels(original, cameras, 256, 256)
+    mask = picture[0].sum(0) > 0
+    inside = registration._interior(fragments.pix_to_face >= 0, mask[None].float(), 2)
+    basis = registration._screen_basis(original, cameras, fragments, inside)
+    off = registration._moved(cameras, -0.4 * basis[:, 0], 256)  # one nudge of 0.4 px from the truth
+    nudged = registration.nudges(original, off, mask[None].float(), 0.4)
+    shifts = [registration.pose_error(original, off, nudged[[k]], 256, 256) for k in range(12)]
+    assert len(nudged) == 12 and all(0.2 < shift <= 0.4 for shift in shifts)  # mean distance, 0.4 px RMS
+    # the nearest nudge: back near the truth (the basis at `off` is turned a little from the truth's)
+    assert min(registration.pose_error(original, cameras, nudged[[k]], 256, 256) for k in range(12)) < 0.1
+
+    reading = watermarker.read(picture[0].permute(1, 2, 0).numpy(), original, camera=off)
+    assert not watermarker.decide([reading]).detected
+    monkeypatch.setattr(registration, "polish_blocks", lambda mesh, camera, *args: None)
+    monkeypatch.setattr(registration, "sharpen", lambda mesh, camera, *args: camera)
+    monkeypatch.setattr(api, "NUDGE_STEP", 0.4)
+    monkeypatch.setattr(api, "NUDGE_BELOW", 1.0)  # whatever the first reading hints
+    again = watermarker.look_again(replace(reading, camera="registered", second_look=(picture, mask, ())), original)
+    decision = watermarker.decide([again])
+    assert decision.detected and again.tries == 3 * 12
+    assert registration.pose_error(original, cameras, again.found, 256, 256) < 0.1
+    single = watermarker.decide([replace(again, tries=1)])
+    assert decision.p_value == pytest.approx(min(1.0, 36 * single.p_value), rel=1e-9)
 
 
 def _bunny_picture_and_jpeg(marked, cameras, lights):
@@ -764,8 +808,8 @@ def test_the_polish_renders_a_halved_picture_as_it_was_made(monkeypatch):
 
 def test_a_second_look_sharpens_only_a_reading_that_hints_at_a_mark(monkeypatch):
     """Sharpening costs a second look its renders: the unmarked bunny's registered reading (no hint, p
-    above SHARPEN_BELOW) is not sharpened; with the bar at 1 it is, and the p-value pays the same x2R
-    either way (every stage is paid for, tried or not)."""
+    above SHARPEN_BELOW) is not sharpened; with the bar at 1 it is, and the p-value pays the same
+    either way (every stage is paid for, tried or not: x3 at the registered camera)."""
     import meshseal.reading.registration as registration
     import meshseal.reading.second_look as api
     from meshseal.api import Watermarker
@@ -783,7 +827,7 @@ def test_a_second_look_sharpens_only_a_reading_that_hints_at_a_mark(monkeypatch)
     real = registration.sharpen
     monkeypatch.setattr(registration, "sharpen", lambda *args, **kwargs: calls.append(1) or real(*args, **kwargs))
     again = watermarker.look_again(first, original)
-    assert calls == [] and not watermarker.decide([again]).detected and again.tries == 2
+    assert calls == [] and not watermarker.decide([again]).detected and again.tries == 3
     monkeypatch.setattr(api, "SHARPEN_BELOW", 1.0)
     watermarker.look_again(first, original)
     assert len(calls) == 1  # one round: its reading hints at nothing either
@@ -793,7 +837,7 @@ def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_
     """Where the registered reading shows no hint of a mark, each alternative is read rough (refined on
     its silhouettes alone) and finished on the texture only if that reading hints at one: the twin
     view is finished and found, the view that shows nothing is never finished, and the p-value still
-    pays x3K for every alternative."""
+    pays x4K for every alternative."""
     import meshseal.reading.second_look as api
     from meshseal import payload
     from meshseal.api import Watermarker
@@ -819,7 +863,7 @@ def test_a_second_look_finishes_only_the_views_whose_rough_reading_hints_at_the_
     assert watermarker.decide([replace(first, second_look=())]).p_value > api.LOOK_AGAIN_BELOW  # no hint
     again = watermarker.look_again(first, original)
     decision = watermarker.decide([again])
-    assert decision.detected and again.tries == 6 and pose_error(original, cameras, again.found, 256, 256) < 0.02  # polished
+    assert decision.detected and again.tries == 8 and pose_error(original, cameras, again.found, 256, 256) < 0.02  # polished
     assert len(finished) == 1 and finished[0] is cameras  # the view showing nothing was not finished
 
 

@@ -396,7 +396,7 @@ def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
 
 def test_registered_eval_also_reads_each_attacked_picture_with_its_camera(dataset, monkeypatch):
     """Registered, each attacked picture whose frame the attack keeps is also read with its true camera
-    (`detected_known_camera`: what registration cost after that attack); untouched, that reading is the
+    (`detected_known_camera`: what registration cost after that attack, and the pose error); untouched, that reading is the
     plain camera-known one; a central crop is read with the crop's own camera (`cropped_camera`); a
     screenshot's canvas, placed at random, has none. (Registration itself is refused here, to keep the
     test short: the camera-known readings are what it is about.)"""
@@ -413,6 +413,9 @@ def test_registered_eval_also_reads_each_attacked_picture_with_its_camera(datase
     assert 0.0 <= rows["resize0.75"]["detected_known_camera"] <= 1.0
     assert 0.0 <= rows["crop0.8"]["detected_known_camera"] <= 1.0
     assert "detected_known_camera" not in rows["screenshot"]
+    # The pose error where a camera is known: a refused picture is infinitely off (null in JSON).
+    assert rows["resize0.75"]["pose_error_px_median"] is None and rows["crop0.8"]["pose_error_px_median"] is None
+    assert "pose_error_px_median" not in rows["screenshot"]
 
 
 def test_an_attacks_pictures_do_not_depend_on_the_others_in_the_list(dataset, monkeypatch):

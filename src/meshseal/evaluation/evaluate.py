@@ -122,7 +122,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
     photometric attacks only), and `result["attacks"]` gives per attack the pictures, the share
     detected and read exactly, the bit accuracy and the seconds a picture; registered, also the share
     detected with the camera known (`<attack>_known_camera`: the true camera, or the crop's own,
-    `attacks.cropped_camera`; none for a screenshot), what registration cost. `named` (and
+    `attacks.cropped_camera`; none for a screenshot), what registration cost, and the median pose
+    error in the attacked picture's pixels (`pose_error_px_median`; by item `<attack>_pose_px`). `named` (and
     `tpr_message_named`) is the share detected by the owner who names the message (`detect --expect`:
     the match's p-value, on the reading `detect` made without it); `listed` (and `tpr_among_listed`)
     the share detected and named by the owner who lists `LISTED` asset IDs, the mark's among them
@@ -256,11 +257,13 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                 seconds = time.perf_counter() - started
                 known_hit = None  # registered, the same picture read with its camera too: what registration cost
                 camera = cameras[[view]] if not _frame_changed(name) else cropped_camera(name, cameras[[view]], size, size)
+                pose = None  # registered: how far the registered camera put the surface from where the known one does
                 if register and camera is not None:  # a crop's camera is known too (`attacks.cropped_camera`)
                     known_read = _read_or_none(watermarker, hit, original, camera=camera)
                     known_hit = coded and known_read is not None and bool(watermarker.decide([known_read]).detected)
+                    pose = math.inf if got is None else pose_error(original, camera, got.found, *hit.shape[:2])
                 attacked[name].append({
-                    "detected_known": known_hit,
+                    "detected_known": known_hit, "pose": pose,
                     "item": name_of_item, "kinds": kinds[view],
                     "bit_acc": 0.5 if decision is None else agree(decision),
                     "detected": coded and decision is not None and bool(decision.detected),
@@ -322,6 +325,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             entry[name] = mean("detected", hit) if hit else None
             if hit and hit[0]["detected_known"] is not None:  # registered, the same pictures read with their camera
                 entry[f"{name}_known_camera"] = mean("detected_known", hit)
+                entry[f"{name}_pose_px"] = _finite(torch.tensor([r["pose"] for r in hit]).nanquantile(0.5))
         return entry
 
     if coded:  # by kind of picture (`picture_kinds`)
@@ -339,6 +343,8 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                     "seconds": mean("seconds", part)}
                               | ({"detected_known_camera": mean("detected_known", part)}
                                  if coded and part and part[0]["detected_known"] is not None else {})
+                              | ({"pose_error_px_median": _finite(torch.tensor([r["pose"] for r in part]).nanquantile(0.5))}
+                                 if part and part[0]["pose"] is not None else {})
                               for name, part in attacked.items()}
     if not register:  # what is left is the camera-known reading (and its time)
         result = {k: v for k, v in result.items() if k in (
