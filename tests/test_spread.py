@@ -574,24 +574,32 @@ def test_a_second_look_reads_the_twin_view_and_pays_for_it(monkeypatch):
     assert pooled.tries == 1 and not pooled.second_look and torch.equal(pooled.evidence, first.evidence)
 
 
+def _aliasing_bunny():
+    """The bunny with a 512^2 noise texture (finer than a 256^2 picture's pixels: it aliases), marked:
+    model, message, original and marked batches, a Watermarker, the seed's first view and its 256^2
+    8-bit picture (1, 3, H, W) of the marked bunny."""
+    from meshseal import payload
+    from meshseal.api import Watermarker
+
+    model, message, original, marked = _original_and_marked_batches()
+    noise = torch.rand(3, 512, 512, generator=torch.Generator().manual_seed(0))
+    original.textures = [noise]
+    marked.textures = [model.texture_encoder(noise[None], message, 1.0, payload.key_seed(None))[0]]
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        picture = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+    return model, message, original, marked, Watermarker(model), cameras, picture
+
+
 def test_a_camera_a_fraction_of_a_pixel_off_is_sharpened_on_the_reading_residual():
     """A texture finer than the picture's pixels aliases (a 512^2 noise texture on the bunny, seen at
     256^2): a camera 0.19 px off misses the mark. `register.sharpen` brings it within a few hundredths
     of a pixel of the true camera, and `look_again` reads the mark there, paying x3(R + 1) (no
     alternatives: three stages, R sharpening rounds)."""
     import meshseal.reading.second_look as api
-    from meshseal import payload
-    from meshseal.api import Watermarker
     from meshseal.reading.registration import _moved, pose_error, sharpen
 
-    model, message, original, marked = _original_and_marked_batches()
-    noise = torch.rand(3, 512, 512, generator=torch.Generator().manual_seed(0))
-    original.textures = [noise]
-    marked.textures = [model.texture_encoder(noise[None], message, 1.0, payload.key_seed(None))[0]]
-    watermarker = Watermarker(model)
-    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        picture = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
+    model, message, original, marked, watermarker, cameras, picture = _aliasing_bunny()
     mask = picture[0].sum(0) > 0
     off = _moved(cameras, torch.tensor([0.15, 0.0, 0.0, 0.0, 0.1, 0.0]), 256)
     reading = watermarker.read(picture[0].permute(1, 2, 0).numpy(), original, camera=off)
@@ -612,18 +620,10 @@ def test_a_second_look_nudges_the_registered_camera_and_pays_for_every_nudge(mon
     nudge whose reading finds the mark, paying x3 x 12 (three stages without alternatives)."""
     import meshseal.reading.registration as registration
     import meshseal.reading.second_look as api
-    from meshseal import payload
-    from meshseal.api import Watermarker
     from meshseal.render import surface_at_pixels
 
-    model, message, original, marked = _original_and_marked_batches()
-    noise = torch.rand(3, 512, 512, generator=torch.Generator().manual_seed(0))
-    original.textures = [noise]
-    marked.textures = [model.texture_encoder(noise[None], message, 1.0, payload.key_seed(None))[0]]
-    watermarker = Watermarker(model)
-    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    model, message, original, marked, watermarker, cameras, picture = _aliasing_bunny()
     with torch.no_grad():
-        picture = _quantise(MeshRenderer()(marked, cameras, lights, 256, 256).image)
         fragments, _, _ = surface_at_pixels(original, cameras, 256, 256)
     mask = picture[0].sum(0) > 0
     inside = registration._interior(fragments.pix_to_face >= 0, mask[None].float(), 2)
