@@ -36,7 +36,7 @@ def look_again(reader, reading: Reading, original, key=None, expect=None, search
     as refined on its silhouettes alone, and finished only where that rough reading hints at a
     mark, so that unmarked pictures pay little for it. Sharpening runs only where the registered
     camera's p-value is at most SHARPEN_BELOW, and again (light refitted at the sharpened camera) where
-    its first reading hints at a mark, SHARPEN_ROUNDS times at most. The
+    its first reading hints at a mark, SHARPEN_ROUNDS times at most.
     Where none of that found the mark and the first reading's p-value is at most NUDGE_BELOW, the
     registered camera is *nudged* (`registration.nudges`: NUDGE_STEP px each way along six orthogonal
     screen moves, 12 cameras) and each nudge read: after JPEG or a resize the texture-led stages can
