@@ -325,7 +325,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             entry[name] = mean("detected", hit) if hit else None
             if hit and hit[0]["detected_known"] is not None:  # registered, the same pictures read with their camera
                 entry[f"{name}_known_camera"] = mean("detected_known", hit)
-                entry[f"{name}_pose_px"] = _finite(torch.tensor([r["pose"] for r in hit]).nanquantile(0.5))
+                entry[f"{name}_pose_px"] = _median_pose(hit)
         return entry
 
     if coded:  # by kind of picture (`picture_kinds`)
@@ -343,7 +343,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                                     "seconds": mean("seconds", part)}
                               | ({"detected_known_camera": mean("detected_known", part)}
                                  if coded and part and part[0]["detected_known"] is not None else {})
-                              | ({"pose_error_px_median": _finite(torch.tensor([r["pose"] for r in part]).nanquantile(0.5))}
+                              | ({"pose_error_px_median": _median_pose(part)}
                                  if part and part[0]["pose"] is not None else {})
                               for name, part in attacked.items()}
     if not register:  # what is left is the camera-known reading (and its time)
@@ -361,6 +361,11 @@ def _frame_changed(attack: str) -> bool:
     the camera it was rendered with no longer reads it; a resized picture keeps its camera (a camera is
     the same for a picture at any size), as do the asset's attacks and the photometric ones."""
     return attack in GEOMETRIC and not attack.startswith("resize")
+
+
+def _median_pose(rows: list) -> float | None:
+    """The median of the rows' pose errors (px; a refused picture is infinitely off), None if not finite."""
+    return _finite(torch.tensor([r["pose"] for r in rows]).nanquantile(0.5))
 
 
 def _finite(value) -> float | None:
