@@ -1275,6 +1275,24 @@ def test_a_picture_shaded_in_linear_light_is_predicted_in_linear_light(monkeypat
     assert torch.equal(readings[True][0], readings[False][0])  # our own picture: as before
     assert z[True][1] > 1.3 * z[False][1] and z[True][1] > 10.0
 
+    # Read again (a second look: the same tensors), each picture keeps its first reading's choice: the
+    # engine's its linear prediction under the footprint found then (the same sums), ours the sRGB one
+    # without making the linear prediction again.
+    from meshseal.reading import linear_light
+
+    monkeypatch.setattr(spread, "LINEAR_LIGHT", True)
+    with torch.no_grad():
+        first = [spread_evidence(model, original, picture, cameras) for picture in (ours, engine)]
+        assert linear_light.chosen_before(ours) is False and isinstance(linear_light.chosen_before(engine), tuple)
+        again_engine = spread_evidence(model, original, engine, cameras)
+
+        def refused(*args, **kwargs):
+            raise AssertionError("the linear prediction made again for a picture read in sRGB before")
+
+        monkeypatch.setattr(linear_light, "linear_prediction", refused)
+        again_ours = spread_evidence(model, original, ours, cameras)
+    assert torch.equal(again_engine, first[1]) and torch.equal(again_ours, first[0])
+
 
 def test_the_resize_adjoint_carries_values_back_as_the_resize_weighed_them():
     """`resized_adjoint` is the transpose of the bicubic, antialiased resize `resampled_prediction`

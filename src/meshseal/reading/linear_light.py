@@ -25,6 +25,33 @@ TRY_ABOVE = 1.5 / 255  # the sRGB prediction's fine-detail misfit (RMS) above wh
 PICK_BELOW = 0.9  # the linear prediction is read where its fine-detail misfit energy is under this share of the sRGB one's
 DETAIL_SIGMA = 1.5  # px: the local mean taken off both predictions' residuals before comparing them
 
+_CHOSEN: list = []  # (picture, its version, choice): whether one picture's reading took the linear prediction
+
+
+def chosen_before(image: torch.Tensor):
+    """What reading the one picture `image` (1, 3, H, W) chose before, as long as the tensor is unchanged
+    (a second look reads it again under other cameras; the engine that shaded it has not changed): False
+    where its sRGB prediction was read, the linear prediction's footprint (`footprint.chosen_before`'s
+    form) where that one was, None where it was not read yet."""
+    from .kept import kept_with
+
+    return kept_with(image, _CHOSEN)
+
+
+def remember_choice(image: torch.Tensor, footprint) -> None:
+    """Keep what a reading of the one picture `image` chose, for `chosen_before`: False (the sRGB
+    prediction), or the linear prediction's `Footprint` (None where it was read without one)."""
+    from .kept import keep_with
+
+    if footprint is False:
+        choice = False
+    elif footprint is None:
+        choice = (float("nan"), float("nan"))
+    else:
+        resized = float("nan") if footprint.resized is None else float(footprint.resized[0])
+        choice = (float(footprint.sigma[0]), resized)
+    keep_with(image, _CHOSEN, choice)
+
 
 def linear_mesh(mesh):
     """`mesh` (MeshBatch) with its textures decoded to linear light."""
@@ -44,12 +71,13 @@ def detail_misfit(seen: torch.Tensor, expected: torch.Tensor, pixel: torch.Tenso
     return float((detail * detail).mean()) if len(detail) else 0.0
 
 
-def linear_prediction(mesh, image: torch.Tensor, cameras, footprint: bool, found):
+def linear_prediction(mesh, image: torch.Tensor, cameras, footprint: bool, found, known=None):
     """The relit original (`reading.relight.relit_residual`) and its footprint (`picture_footprint`,
     where `footprint`) made in linear light, as (found, sampled) with the predictions encoded to sRGB
     and `found`'s picture and albedo (the sRGB ones) kept: one picture `image` (1, 3, H, W) of `mesh`
     seen by `cameras`. `found`: the sRGB reading's `RelitResidual` of the same picture. None where the
-    linear render does not cover the same pixels."""
+    linear render does not cover the same pixels. `known`: the footprint a reading of this picture chose
+    for its linear prediction before (`chosen_before`), the only one tried then."""
     from .footprint import picture_footprint
     from .relight import relit_residual
 
@@ -58,7 +86,8 @@ def linear_prediction(mesh, image: torch.Tensor, cameras, footprint: bool, found
     linear = relit_residual(lit, srgb_to_linear(image), cameras)
     if not torch.equal(linear.keep, found.keep):
         return None
-    sampled = picture_footprint(lit, linear, cameras, height, width, shortcut=False) if footprint else None
+    sampled = picture_footprint(lit, linear, cameras, height, width, known=known,
+                                shortcut=False) if footprint else None
     encoded = replace(linear, seen=found.seen, albedo=found.albedo, expected=linear_to_srgb(linear.expected).to(found.expected))
     if sampled is not None:
         sampled = replace(sampled, expected=linear_to_srgb(sampled.expected).to(found.expected))
