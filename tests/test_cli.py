@@ -301,3 +301,33 @@ def test_detect_quick_registers_without_the_recut_and_the_retry(tmp_path, capsys
         code, out, err = run(capsys, "detect", tmp_path / "bare.png", "--mesh", FIXTURES / "bunny.glb", "--json", *flags)
         assert code == 1, err  # the unmarked bunny: read, no mark
         assert json.loads(out)["camera"].startswith("registered") and seen[-1] is expected
+
+
+def test_the_web_table_runs_each_part_in_slices_and_judges_every_row_against_its_target(capsys, monkeypatch):
+    """`tools/web_table.py` (issue #45's table in one command): one `meshseal eval` process a slice of
+    each part, and a row is met only where every part that measured it meets its target (the clean
+    pictures' exact message too)."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("web_table", FIXTURES.parents[1] / "tools" / "web_table.py")
+    web_table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(web_table)
+    monkeypatch.setattr(sys, "argv", ["web_table.py", "--data", "data", "--work", "w", "--meshes", "60",
+                                      "--slice", "25", "--dry-run"])
+    assert web_table.main() == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 + 3 + 1 + 1  # 3 slices of each test part, one of each fixture part
+    assert sum("--start 25 --meshes 25" in line for line in lines) == 2 and sum("--meshes 10" in line for line in lines) == 2
+    assert sum("--register" in line for line in lines) == 4
+
+    def row(detected, exact=0.5):
+        return {"pictures": 10, "detected": detected, "exact": exact}
+
+    merged = {"known": {"flip_object": 0.02, "flip_object_p95": 0.06, "psnr_object": 45.0, "psnr_texture_shown": 40.2,
+                        "attacks": {"none": row(0.98, 0.96), "jpeg50": row(0.71)}},
+              "registered": {"attacks": {"none": row(0.99, 0.90), "jpeg50": row(0.75)}}}
+    table = {line.split(" | ")[0].lstrip("| "): line for line in web_table.target_table(merged).splitlines()}
+    assert table["object FLIP, mean"].endswith("| yes |") and table["object FLIP, p95"].endswith("| no |")
+    assert table["jpeg50: detected (exact)"].endswith("| yes |")
+    assert table["none: detected (exact)"].endswith("| no |")  # the registered exact message 0.90 < 0.95

@@ -52,7 +52,7 @@ BAD_ARGUMENTS = [["bogus"], ["detect"], ["embed", "x.glb"], ["render", "x.glb", 
                  ["detect", BUNNY, "--mesh", BUNNY, "--expect", "toolong"],
                  # attacks: an unknown name, one that moves the camera without --register
                  ["eval", "--data", FIXTURES, "--attacks", "jpeg90,no_such_attack"],
-                 ["eval", "--data", FIXTURES, "--attacks", "resize0.5"]]
+                 ["eval", "--data", FIXTURES, "--attacks", "resize0.5"], ["eval", "--data", FIXTURES, "--start", "3"]]
 
 
 def probe(argvs):
@@ -80,6 +80,7 @@ def test_bad_arguments_are_refused_without_the_heavy_libraries(tmp_path):
     assert "unknown attack(s) no_such_attack" in result["stderr"] and "change the picture's camera" in result["stderr"]
     assert "no_such_mesh.glb: no such mesh file" in result["stderr"]
     assert "unknown model 'no_such_model'" in result["stderr"] and "README.md: unsupported mesh format" in result["stderr"]
+    assert "--start slices the pictures read as `detect` reads them: add --register or --attacks" in result["stderr"]
 
 
 def test_a_models_size_is_read_from_its_weights_header_without_torch(tmp_path):

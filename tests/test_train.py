@@ -394,6 +394,39 @@ def test_eval_reads_every_picture_after_each_attack(dataset, capsys):
     assert "add --register" in capsys.readouterr().err
 
 
+def test_eval_slices_add_up_to_the_run_over_their_meshes(dataset, capsys):
+    """`meshseal eval --start S --meshes N`: a slice of the split, so that slices run in processes of
+    their own; slices that cover the meshes merge (`evaluation.merge.merge_results`) into one result
+    with every picture counted once and each rate weighted by its pictures. A slice past the split,
+    or one without --attacks or --register, is refused in one line."""
+    from meshseal.evaluation.merge import merge_results
+
+    def run(*extra):
+        assert main(["eval", "--data", str(dataset), "--size", "64", "--attacks", "none,jpeg75", "--json", *extra]) == 0
+        return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+    whole = run("--meshes", "2")
+    first, second = run("--meshes", "1"), run("--start", "1", "--meshes", "1")
+    assert (first["start"], second["start"], first["n_meshes"], second["n_meshes"]) == (0, 1, 1, 1)
+    merged = merge_results([first, second])
+    assert merged["n_meshes"] == 2 and merged["slices"] == [[0, 1], [1, 1]]
+    for name in ("none", "jpeg75"):
+        assert merged["attacks"][name]["pictures"] == whole["attacks"][name]["pictures"] == 2
+        rates = [part["attacks"][name]["bit_acc"] for part in (first, second)]
+        assert merged["attacks"][name]["bit_acc"] == pytest.approx(sum(rates) / 2)
+    assert merged["flip_object_p95"] == max(first["flip_object_p95"], second["flip_object_p95"])
+    assert merged["flip_object"] == pytest.approx((first["flip_object"] + second["flip_object"]) / 2)
+    with pytest.raises(ValueError, match="differ in model"):
+        merge_results([first, dict(second, model="other")])
+    from meshseal.data.dataset import MeshDataset
+
+    n_test = len(MeshDataset(dataset, "test"))
+    assert main(["eval", "--data", str(dataset), "--start", str(n_test), "--attacks", "none"]) == 2
+    assert f"has {n_test} meshes" in capsys.readouterr().err
+    assert main(["eval", "--data", str(dataset), "--start", "1"]) == 2
+    assert "add --register or --attacks" in capsys.readouterr().err
+
+
 def test_registered_eval_also_reads_each_attacked_picture_with_its_camera(dataset, monkeypatch):
     """Registered, each attacked picture whose frame the attack keeps is also read with its true camera
     (`detected_known_camera`: what registration cost after that attack, and the pose error); untouched, that reading is the

@@ -95,6 +95,10 @@ def register(subparsers) -> None:
     evaluate.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
     evaluate.add_argument("--views", type=positive_int(100), default=1, help="views per mesh (default 1)")
     evaluate.add_argument("--meshes", type=int, default=None, help="at most this many meshes (default all)")
+    evaluate.add_argument("--start", type=positive_int(10 ** 9, 0), default=0,
+                          help="skip the split's first START meshes (with --register or --attacks): a slice, "
+                               "--start S --meshes N, so that slices run in processes of their own; each slice "
+                               "draws its own views and messages (default 0)")
     evaluate.add_argument("--protocol", choices=("seed",), default=None,
                           help="seed: the paper's protocol (its camera and light ranges, meshes with spherical UVs "
                                "and noise or real textures, 600 x 400 pictures: --sampler paper --texture-kinds "
@@ -605,6 +609,8 @@ def run_eval(args) -> int:
         moved = [name for name in attacks if name in GEOMETRIC]
         if moved and not args.register:
             raise MeshsealError(f"--attacks {','.join(moved)} change the picture's camera: add --register")
+    if args.start and not (args.register or attacks):
+        raise MeshsealError("--start slices the pictures read as `detect` reads them: add --register or --attacks")
     from ..api import load
     from ..data.dataset import MeshDataset
     from ..training.distortions import Distortions2D, Distortions3D
@@ -637,6 +643,12 @@ def run_eval(args) -> int:
     if len(dataset) == 0:
         kinds_note = f" of texture kinds {','.join(kinds)}" if kinds else ""
         raise MeshsealError(f"{args.data}: the {args.split} split has no items{kinds_note}")
+    if args.start:
+        if args.start >= len(dataset):
+            raise MeshsealError(f"--start {args.start}: {args.data} has {len(dataset)} meshes in this split")
+        from torch.utils.data import Subset
+
+        dataset = Subset(dataset, range(args.start, len(dataset)))
     if attacks is not None and not watermarker.informed:
         raise MeshsealError(f"--attacks is for informed models; '{watermarker.name}' reads pictures blind")
     if args.register or attacks:
@@ -655,7 +667,8 @@ def run_eval(args) -> int:
                            distortions_3d=Distortions3D(args.distortion_3d) if args.distortion_3d > 0 else None,
                            distortions_2d=Distortions2D(args.distortion_2d) if args.distortion_2d > 0 else None,
                            progress=sys.stderr.isatty())
-    metrics = {"model": watermarker.name, "split": "folder" if folder else args.split, "sampler": args.sampler,
+    metrics = {"model": watermarker.name, "split": "folder" if folder else args.split, "start": args.start,
+               "sampler": args.sampler,
                "protocol": args.protocol or "ours", "texture_kinds": kinds or "all",
                "size": list(size) if isinstance(size, tuple) else size} | metrics
     if args.json:
