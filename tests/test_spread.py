@@ -1275,19 +1275,24 @@ def test_a_picture_shaded_in_linear_light_is_predicted_in_linear_light(monkeypat
     assert torch.equal(readings[True][0], readings[False][0])  # our own picture: as before
     assert z[True][1] > 1.3 * z[False][1] and z[True][1] > 10.0
 
-    # Read again (a second look: the same tensors), each picture keeps its first reading's choice: the
-    # engine's its linear prediction under the footprint found then (the same sums), ours the sRGB one
-    # without making the linear prediction again.
-    from meshseal.reading import linear_light
+    # Read again (a second look: the same tensor), the engine's picture makes its linear prediction under
+    # the footprint found for it before, without searching the others (the same sums); ours, which the
+    # sRGB prediction explains, never makes one.
+    from meshseal.reading import footprint, linear_light
 
     monkeypatch.setattr(spread, "LINEAR_LIGHT", True)
     with torch.no_grad():
         first = [spread_evidence(model, original, picture, cameras) for picture in (ours, engine)]
-        assert linear_light.chosen_before(ours) is False and isinstance(linear_light.chosen_before(engine), tuple)
+        assert linear_light.chosen_before(ours) is None and isinstance(linear_light.chosen_before(engine), tuple)
+        searched = []
+        search = footprint.picture_footprint
+        monkeypatch.setattr(footprint, "picture_footprint",
+                            lambda *a, **k: searched.append(k.get("known")) or search(*a, **k))
         again_engine = spread_evidence(model, original, engine, cameras)
+        assert searched and all(known is not None for known in searched)
 
         def refused(*args, **kwargs):
-            raise AssertionError("the linear prediction made again for a picture read in sRGB before")
+            raise AssertionError("a linear prediction made for a picture the sRGB one explains")
 
         monkeypatch.setattr(linear_light, "linear_prediction", refused)
         again_ours = spread_evidence(model, original, ours, cameras)

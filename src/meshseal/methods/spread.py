@@ -251,30 +251,27 @@ def _linear_if_better(mesh, image, cameras, footprint, found, sampled, before, a
     linear light instead (`reading.linear_light`) where the sRGB one (`after`, through the picture's
     codec) misses the picture's fine detail by more than our own pictures are missed and the linear one,
     through the same codec (`saved`), misses it clearly less. A picture read before (the same tensor: a
-    second look) keeps the sRGB prediction where its first reading did, and the footprint its linear
-    prediction was read under where it took that one (`linear_light.chosen_before`): which engine shaded
-    a picture does not change with the camera it is read under. Picture and original only: no key."""
+    second look) makes its linear prediction under the footprint found for it then
+    (`linear_light.chosen_before`: how the engine sampled the picture does not change with the camera),
+    without searching the others again; the choice between the two predictions is made afresh under
+    each camera (kept from the first camera, a second look at a better one lost an Eevee picture of
+    docs/renderers.md's). Picture and original only: no key."""
     from ..reading import linear_light
 
-    known = linear_light.chosen_before(image)
-    if known is False:
-        return found, sampled, before, after
     shape = (1, image.shape[-2], image.shape[-1])
     misfit = linear_light.detail_misfit(found.seen, after, pixel, shape)
-    if known is None and misfit <= linear_light.TRY_ABOVE ** 2:
-        linear_light.remember_choice(image, False)
+    if misfit <= linear_light.TRY_ABOVE ** 2:
         return found, sampled, before, after
+    known = linear_light.chosen_before(image)
     candidate = linear_light.linear_prediction(mesh, image, cameras, footprint, found, known=known)
     if candidate is None:
         return found, sampled, before, after
+    if known is None:
+        linear_light.remember_choice(image, candidate[1])
     linear = candidate[0].expected if candidate[1] is None else candidate[1].expected
     through = saved(linear)
     if linear_light.detail_misfit(found.seen, through, pixel, shape) >= linear_light.PICK_BELOW * misfit:
-        if known is None:
-            linear_light.remember_choice(image, False)
         return found, sampled, before, after
-    if known is None:
-        linear_light.remember_choice(image, candidate[1])
     return candidate[0], candidate[1], linear, through
 
 

@@ -25,27 +25,24 @@ TRY_ABOVE = 1.5 / 255  # the sRGB prediction's fine-detail misfit (RMS) above wh
 PICK_BELOW = 0.9  # the linear prediction is read where its fine-detail misfit energy is under this share of the sRGB one's
 DETAIL_SIGMA = 1.5  # px: the local mean taken off both predictions' residuals before comparing them
 
-_CHOSEN: list = []  # (picture, its version, choice): whether one picture's reading took the linear prediction
+_CHOSEN: list = []  # (picture, its version, footprint): the footprint one picture's linear prediction was made under
 
 
 def chosen_before(image: torch.Tensor):
-    """What reading the one picture `image` (1, 3, H, W) chose before, as long as the tensor is unchanged
-    (a second look reads it again under other cameras; the engine that shaded it has not changed): False
-    where its sRGB prediction was read, the linear prediction's footprint (`footprint.chosen_before`'s
-    form) where that one was, None where it was not read yet."""
+    """The footprint (`footprint.chosen_before`'s form) under which a reading of the one picture `image`
+    (1, 3, H, W) made its linear prediction before, as long as the tensor is unchanged (a second look
+    reads it again under other cameras; how the engine sampled it has not changed), or None."""
     from .kept import kept_with
 
     return kept_with(image, _CHOSEN)
 
 
 def remember_choice(image: torch.Tensor, footprint) -> None:
-    """Keep what a reading of the one picture `image` chose, for `chosen_before`: False (the sRGB
-    prediction), or the linear prediction's `Footprint` (None where it was read without one)."""
+    """Keep the `Footprint` (None: made without one) a reading of the one picture `image` made its
+    linear prediction under, for `chosen_before`."""
     from .kept import keep_with
 
-    if footprint is False:
-        choice = False
-    elif footprint is None:
+    if footprint is None:
         choice = (float("nan"), float("nan"))
     else:
         resized = float("nan") if footprint.resized is None else float(footprint.resized[0])
