@@ -92,11 +92,19 @@ def run_slice(line: list[str], out: Path) -> str | None:
     except (ValueError, IndexError):
         return f"{out.name}: no JSON on the last line of its output"
     result["wall_seconds"] = time.perf_counter() - started
-    with tempfile.NamedTemporaryFile("w", dir=out.parent, suffix=".tmp", delete=False) as handle:
-        json.dump(result, handle)
-    os.replace(handle.name, out)
+    write_atomically(out, json.dumps(result))
     print(f"{out.name}: {result['wall_seconds']:.0f} s", flush=True)
     return None
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """`text` to `path` through a temporary file beside it, with the user's umask."""
+    mask = os.umask(0)
+    os.umask(mask)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as handle:
+        handle.write(text)
+    os.chmod(handle.name, 0o666 & ~mask)
+    os.replace(handle.name, path)
 
 
 def figure(value, digits: int = 2) -> str:
@@ -189,7 +197,7 @@ def main() -> int:
 
     merged = {name: merge_results([json.loads((args.work / f"{name}_{start:04d}.json").read_text())
                                    for start, _ in part["slices"]]) for name, part in plan.items()}
-    (args.work / "merged.json").write_text(json.dumps(merged, indent=1))
+    write_atomically(args.work / "merged.json", json.dumps(merged, indent=1))
     text = [f"<!-- python tools/web_table.py --data {args.data} --meshes {args.meshes} --views {args.views} "
             f"--slice {args.slice} --seed {args.seed}{' --model ' + args.model if args.model else ''}; "
             f"load {os.getloadavg()[0]:.2f} at the end -->", "", target_table(merged)]
@@ -199,7 +207,7 @@ def main() -> int:
                      kind_table(merged[name]["by_kind"], list(merged[name].get("attacks", {})))]
     print("\n".join(text))
     if args.out:
-        args.out.write_text("\n".join(text) + "\n")
+        write_atomically(args.out, "\n".join(text) + "\n")
     return 0
 
 
