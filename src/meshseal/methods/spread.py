@@ -254,8 +254,8 @@ def _linear_if_better(mesh, image, cameras, footprint, found, sampled, before, a
     second look) makes its linear prediction under the footprint found for it then
     (`linear_light.chosen_before`: how the engine sampled the picture does not change with the camera),
     without searching the others again; the choice between the two predictions is made afresh under
-    each camera (kept from the first camera, a second look at a better one lost an Eevee picture of
-    docs/renderers.md's). Picture and original only: no key."""
+    each camera (the first camera's can be the wrong one's: docs/reading.md, stage 6). Picture and
+    original only: no key."""
     from ..reading import linear_light
 
     shape = (1, image.shape[-2], image.shape[-1])

@@ -123,11 +123,18 @@ def chosen_before(image: torch.Tensor) -> tuple[float, float] | None:
     return kept_with(image, _CHOSEN)
 
 
+def as_choice(footprint: "Footprint | None") -> tuple[float, float]:
+    """A one-picture footprint as `chosen_before` gives it back: (template sigma, resized factor), NaN
+    for none (None: point samples)."""
+    if footprint is None:
+        return (float("nan"), float("nan"))
+    resized = float("nan") if footprint.resized is None else float(footprint.resized[0])
+    return (float(footprint.sigma[0]), resized)
+
+
 def remember_choice(image: torch.Tensor, footprint: "Footprint") -> None:
     """Keep the footprint a reading of the one picture `image` chose, for `chosen_before`."""
-    resized = float("nan") if footprint.resized is None else float(footprint.resized[0])
-    choice = (float(footprint.sigma[0]), resized)
-    keep_with(image, _CHOSEN, choice)
+    keep_with(image, _CHOSEN, as_choice(footprint))
 
 
 def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, height: int, width: int,

@@ -40,14 +40,10 @@ def chosen_before(image: torch.Tensor):
 def remember_choice(image: torch.Tensor, footprint) -> None:
     """Keep the `Footprint` (None: made without one) a reading of the one picture `image` made its
     linear prediction under, for `chosen_before`."""
+    from .footprint import as_choice
     from .kept import keep_with
 
-    if footprint is None:
-        choice = (float("nan"), float("nan"))
-    else:
-        resized = float("nan") if footprint.resized is None else float(footprint.resized[0])
-        choice = (float(footprint.sigma[0]), resized)
-    keep_with(image, _CHOSEN, choice)
+    keep_with(image, _CHOSEN, as_choice(footprint))
 
 
 def linear_mesh(mesh):
