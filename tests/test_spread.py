@@ -942,6 +942,26 @@ def test_a_resized_picture_is_predicted_as_resized(monkeypatch):
     assert float((resizing * signs).mean()) > 1.1 * float((gaussian * signs).mean()) > 0
 
 
+def test_a_resized_footprint_kept_from_before_reads_a_view_with_no_whole_pixel():
+    """A second look may read a resized picture under a camera where none of the kept pixels is wholly
+    covered (the object at the frame's edge): the footprint kept from the first reading (a resize) has
+    nothing to be compared on there, and the picture reads under point samples, without an error."""
+    from meshseal.reading import footprint
+    from meshseal.reading.relight import relit_residual
+
+    model, message, original, marked = _original_and_marked_batches(SPREAD)
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        picture = _halved_picture(marked, cameras, lights)
+        found = relit_residual(original, picture, cameras)
+        none = found.keep[:0]
+        bare = replace(found, seen=found.seen[:0], expected=found.expected[:0], albedo=found.albedo[:0],
+                       uv=found.uv[:0], material=found.material[:0], image_index=found.image_index[:0], keep=none)
+        chosen = footprint.picture_footprint(original, bare, cameras, *picture.shape[-2:],
+                                             known=(footprint.RESAMPLED_TEMPLATE_SIGMA, 0.5))
+    assert len(chosen.expected) == 0 and bool(torch.isnan(chosen.sigma).all())
+
+
 def test_a_picture_read_again_keeps_the_footprint_its_first_reading_found():
     """A second look reads the same picture tensor under other cameras: the footprint found the first
     time is kept (`footprint.chosen_before`), so the reading under the same camera is the same and no

@@ -217,7 +217,9 @@ def picture_footprint(mesh: MeshBatch, found: RelitResidual, cameras: Cameras, h
     choice = scores.argmax(1)  # (B,); a picture with nothing to compare keeps point samples
     template_sigmas = (float("nan"),) + widths
     resampled = tuple(f for f in resampled if max(height, width) / f <= RESAMPLED_LARGEST)
-    if resampled and (forced or bool((choice > 0).any())):  # a blurred picture: was it resized from another size?
+    # a blurred picture: was it resized from another size? (Not where no pixel is wholly covered: nothing
+    # to compare, as under a second look's camera that shows the object at the frame's edge alone.)
+    if resampled and len(pixel) > 0 and (forced or bool((choice > 0).any())):
         more = [pick_full(resampled_prediction(relit, cameras, found.lights, height, width, factor), kept)
                 for factor in resampled]
         extra = torch.stack(more, 1)[usable]
