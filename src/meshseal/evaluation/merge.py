@@ -26,6 +26,12 @@ def _weighted(rows: list[tuple[dict, float]], key: str):
     return sum(value * weight for value, weight in have) / total
 
 
+def _numeric(rows: list[dict], key: str) -> bool:
+    """Whether every value of `key` the rows have (not None) is a number, and one has it."""
+    values = [row[key] for row in rows if row.get(key) is not None]
+    return bool(values) and all(isinstance(value, (int, float)) and not isinstance(value, bool) for value in values)
+
+
 def _merge_rows(rows: list[dict]) -> dict:
     """Rows of one table (each with `pictures`) added up: pictures summed, the rest weighted by them."""
     weighted = [(row, float(row.get("pictures", 0))) for row in rows]
@@ -33,11 +39,10 @@ def _merge_rows(rows: list[dict]) -> dict:
     for key in dict.fromkeys(key for row in rows for key in row):
         if key == "pictures":
             continue
-        values = [row.get(key) for row in rows if row.get(key) is not None]
-        if values and all(isinstance(value, (int, float)) and not isinstance(value, bool) for value in values):
+        if _numeric(rows, key):
             merged[key] = _weighted(weighted, key)
-        elif values:
-            merged[key] = values[0]
+        elif any(row.get(key) is not None for row in rows):
+            merged[key] = next(row[key] for row in rows if row.get(key) is not None)
     return merged
 
 
@@ -64,8 +69,7 @@ def merge_results(parts: list[dict]) -> dict:
     for key in dict.fromkeys(key for part in parts for key in part):
         if key in merged or key in RUN_KEYS or key in ("start", "slices"):
             continue
-        values = [part.get(key) for part in parts if part.get(key) is not None]
-        if values and all(isinstance(value, (int, float)) and not isinstance(value, bool) for value in values):
+        if _numeric(parts, key):
             merged[key] = _weighted(list(zip(parts, pictures)), key)
     for table in ("attacks", "by_kind", "by_uv_map"):
         names = list(dict.fromkeys(name for part in parts for name in part.get(table) or {}))
