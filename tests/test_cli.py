@@ -331,3 +331,24 @@ def test_the_web_table_runs_each_part_in_slices_and_judges_every_row_against_its
     assert table["object FLIP, mean"].endswith("| yes |") and table["object FLIP, p95"].endswith("| no |")
     assert table["jpeg50: detected (exact)"].endswith("| yes |")
     assert table["none: detected (exact)"].endswith("| no |")  # the registered exact message 0.90 < 0.95
+
+
+def test_the_web_table_keeps_each_slice_with_the_users_umask_and_leaves_no_temporary(tmp_path):
+    """A slice's JSON is replaced whole (never half written, so a resumed run never reads a torn file)
+    and gets the mode the user's umask gives a new file, not the 0600 of a temporary file."""
+    import importlib.util
+    import os
+
+    spec = importlib.util.spec_from_file_location("web_table", FIXTURES.parents[1] / "tools" / "web_table.py")
+    web_table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(web_table)
+    old = os.umask(0o027)
+    try:
+        out = tmp_path / "known_0000.json"
+        web_table.write_atomically(out, '{"a": 1}')
+        web_table.write_atomically(out, '{"a": 2}')
+    finally:
+        os.umask(old)
+    assert out.read_text() == '{"a": 2}'
+    assert (out.stat().st_mode & 0o777) == 0o640
+    assert [p.name for p in tmp_path.iterdir()] == ["known_0000.json"]
