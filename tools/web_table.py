@@ -92,9 +92,20 @@ def run_slice(line: list[str], out: Path) -> str | None:
     except (ValueError, IndexError):
         return f"{out.name}: no JSON on the last line of its output"
     result["wall_seconds"] = time.perf_counter() - started
+    result["commit"] = source_version()
     write_atomically(out, json.dumps(result))
     print(f"{out.name}: {result['wall_seconds']:.0f} s", flush=True)
     return None
+
+
+def source_version() -> str:
+    """The commit the slices run (`git describe --always --dirty`), or "unknown" outside a checkout."""
+    try:
+        done = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
+                              text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return done.stdout.strip() or "unknown"
 
 
 def write_atomically(path: Path, text: str) -> None:
@@ -195,12 +206,14 @@ def main() -> int:
     from meshseal.commands.model import kind_table
     from meshseal.evaluation.merge import merge_results
 
-    merged = {name: merge_results([json.loads((args.work / f"{name}_{start:04d}.json").read_text())
-                                   for start, _ in part["slices"]]) for name, part in plan.items()}
+    slices = {name: [json.loads((args.work / f"{name}_{start:04d}.json").read_text()) for start, _ in part["slices"]]
+              for name, part in plan.items()}
+    merged = {name: merge_results(results) for name, results in slices.items()}
     write_atomically(args.work / "merged.json", json.dumps(merged, indent=1))
+    commits = sorted({result.get("commit", "not recorded") for results in slices.values() for result in results})
     text = [f"<!-- python tools/web_table.py --data {args.data} --meshes {args.meshes} --views {args.views} "
             f"--slice {args.slice} --seed {args.seed}{' --model ' + args.model if args.model else ''}; "
-            f"load {os.getloadavg()[0]:.2f} at the end -->", "", target_table(merged)]
+            f"slices run at {', '.join(commits)}; load {os.getloadavg()[0]:.2f} at the end -->", "", target_table(merged)]
     for name, title in COLUMNS:
         if name in merged and merged[name].get("by_kind"):
             text += ["", f"Detected by kind of picture, {title} (a picture can be of several kinds):", "",
