@@ -303,3 +303,24 @@ def test_a_quick_registration_neither_recuts_nor_retries_more_views(monkeypatch)
     calls.clear(), cuts.clear()
     registration.register_with_masks(None, picture, masks, torch.zeros(3), recut=recut, quick=True)
     assert calls == [False] * len(masks) and cuts == []
+
+
+def test_the_retry_finishes_its_view_on_the_texture_only_where_its_silhouettes_already_fit_better(monkeypatch):
+    """Where the finished camera fits the texture poorly (over RETRY_ABOVE), `register` refines more
+    candidate views; their best is taken on to the texture stage (the costliest) only where, refined on
+    its silhouettes alone, it already fits the texture better than the finished camera."""
+    mesh, (camera, lights) = _bunny(), _view(index=0)
+    out = MeshRenderer()(mesh, camera, lights, 128, 128, (0.5, 0.5, 0.5))
+    finished = []
+    monkeypatch.setattr(registration, "_on_texture", lambda mesh, camera, picture, mask: finished.append(camera) or camera)
+
+    def run(misfits):
+        values = iter(misfits)  # the finished camera's texture misfit, then the retry's view's, ...
+        monkeypatch.setattr(registration, "texture_misfit", lambda *args, **kwargs: next(values, 1.0))
+        finished.clear()
+        registration.register(mesh, out.image[0], out.rgba[0, ..., 3] > 0.5, torch.tensor([0.5, 0.5, 0.5]))
+        return len(finished)
+
+    assert run([0.5, 0.9]) == 1  # the retry's view fits worse on its silhouettes: not finished
+    assert run([0.5, 0.1, 0.05]) == 2  # it fits better: finished, and kept
+    assert run([0.1]) == 1  # the finished camera fits: no retry at all

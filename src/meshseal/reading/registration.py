@@ -61,6 +61,7 @@ SCORE_LIGHT_DIRECTIONS = 48  # the candidates' shading score fits its light on t
 SCORE_LIGHT_PIXELS = 256  # ... and at most about this many pixels a view (the texture stage's fits: 96 and 512)
 RETRY_ABOVE = 0.2  # a registration whose texture misfit (PICK_SIGMAS) is over this also tries RETRY_KEEP more candidate views
 RETRY_KEEP = 12
+RETRY_FINISH_BELOW = 1.0  # ... and finishes its best on the texture only where on its silhouettes it fits under this share of the finished camera's misfit
 RETRY_ANGLE = 12.0  # ... at least this many degrees from each other and from the views refined first
 TEXTURE_DAMPING = 1e-3  # the texture stage's Levenberg-Marquardt damping, times the normal matrix's mean diagonal ...
 ZOOM_DAMPING = 1e-6  # ... and with the zoom, whose valley along the view axis that damping would hold back
@@ -1536,8 +1537,12 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
         more = _distinct(scores, directions, RETRY_KEEP, RETRY_ANGLE, away_from=best) if misfit > RETRY_ABOVE else []
         if more:
             extra, extra_misfits, extra_chosen = _refine_candidates(mesh, outline, search[more], levels, margin=1.0)
-            if math.isfinite(extra_misfits[extra_chosen]):
-                other = finish(extra[[extra_chosen]])
+            # The retry's best view is finished on the texture (the costliest stage) only where on its
+            # silhouettes alone it already fits the texture better than the finished camera does: a view
+            # the retry rescues fits far better from the start, and one that would lose costs no texture stage.
+            rough = on_silhouettes(extra[[extra_chosen]]) if math.isfinite(extra_misfits[extra_chosen]) else None
+            if rough is not None and texture_misfit(mesh, rough, full, full_mask, PICK_SIGMAS) < RETRY_FINISH_BELOW * misfit:
+                other = on_texture(rough)
                 if texture_misfit(mesh, other, full, full_mask, PICK_SIGMAS) < misfit:
                     alternatives = (Alternative(camera), *alternatives[:ALTERNATIVES - 1])
                     camera = other
