@@ -303,16 +303,23 @@ def test_detect_quick_registers_without_the_recut_and_the_retry(tmp_path, capsys
         assert json.loads(out)["camera"].startswith("registered") and seen[-1] is expected
 
 
-def test_the_web_table_runs_each_part_in_slices_and_judges_every_row_against_its_target(capsys, monkeypatch):
-    """`tools/web_table.py` (issue #45's table in one command): one `meshseal eval` process a slice of
-    each part, and a row is met only where every part that measured it meets its target (the clean
-    pictures' exact message too)."""
+def _web_table():
+    """`tools/web_table.py` as a module (tools/ is not a package)."""
     import importlib.util
-    import sys
 
     spec = importlib.util.spec_from_file_location("web_table", FIXTURES.parents[1] / "tools" / "web_table.py")
     web_table = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(web_table)
+    return web_table
+
+
+def test_the_web_table_runs_each_part_in_slices_and_judges_every_row_against_its_target(capsys, monkeypatch):
+    """`tools/web_table.py` (issue #45's table in one command): one `meshseal eval` process a slice of
+    each part, and a row is met only where every part that measured it meets its target (the clean
+    pictures' exact message too)."""
+    import sys
+
+    web_table = _web_table()
     monkeypatch.setattr(sys, "argv", ["web_table.py", "--data", "data", "--work", "w", "--meshes", "60",
                                       "--slice", "25", "--dry-run"])
     assert web_table.main() == 0
@@ -336,12 +343,9 @@ def test_the_web_table_runs_each_part_in_slices_and_judges_every_row_against_its
 def test_the_web_table_keeps_each_slice_with_the_users_umask_and_leaves_no_temporary(tmp_path):
     """A slice's JSON is replaced whole (never half written, so a resumed run never reads a torn file)
     and gets the mode the user's umask gives a new file, not the 0600 of a temporary file."""
-    import importlib.util
     import os
 
-    spec = importlib.util.spec_from_file_location("web_table", FIXTURES.parents[1] / "tools" / "web_table.py")
-    web_table = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(web_table)
+    web_table = _web_table()
     old = os.umask(0o027)
     try:
         out = tmp_path / "known_0000.json"

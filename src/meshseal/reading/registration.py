@@ -1540,12 +1540,13 @@ def register(mesh: MeshBatch, picture: torch.Tensor, mask: torch.Tensor, backgro
             # The retry's best view is finished on the texture (the costliest stage) only where on its
             # silhouettes alone it already fits the texture better than the finished camera does: a view
             # the retry rescues fits far better from the start, and one that would lose costs no texture stage.
-            rough = on_silhouettes(extra[[extra_chosen]]) if math.isfinite(extra_misfits[extra_chosen]) else None
-            if rough is not None and texture_misfit(mesh, rough, full, full_mask, PICK_SIGMAS) < RETRY_FINISH_BELOW * misfit:
-                other = on_texture(rough)
-                if texture_misfit(mesh, other, full, full_mask, PICK_SIGMAS) < misfit:
-                    alternatives = (Alternative(camera), *alternatives[:ALTERNATIVES - 1])
-                    camera = other
+            if math.isfinite(extra_misfits[extra_chosen]):
+                rough = on_silhouettes(extra[[extra_chosen]])
+                if texture_misfit(mesh, rough, full, full_mask, PICK_SIGMAS) < RETRY_FINISH_BELOW * misfit:
+                    other = on_texture(rough)
+                    if texture_misfit(mesh, other, full, full_mask, PICK_SIGMAS) < misfit:
+                        alternatives = (Alternative(camera), *alternatives[:ALTERNATIVES - 1])
+                        camera = other
     return Registration(camera, box[0], silhouette_iou(mesh, camera, mask), alternatives)
 
 
