@@ -778,6 +778,53 @@ def test_a_small_objects_rim_finds_the_pose_the_interior_polish_misses():
     assert error(polish_composited(original, far, picture, mask, behind)) < 0.01
 
 
+def test_a_registered_object_of_few_pixels_is_polished_on_its_rim_first(monkeypatch):
+    """The bunny 8 units away on a plain background: a box over RIM_BELOW px wide, but under
+    RIM_PIXELS_BELOW pixels, few of them interior. Registration handing over cameras a quarter of a
+    pixel off, the polish alone (`RIM_PIXELS_BELOW` 0) stops a tenth of a pixel or more off; the reading
+    first compares the whole window, its rim included (`registration.polish_composited`, one quick
+    round), and the polish then ends within 0.02 px. A picture of a larger object is not polished on its
+    rim (its interior pixels suffice)."""
+    import numpy as np
+
+    import meshseal
+    import meshseal.reading.read as read
+    import meshseal.reading.registration as registration
+    from meshseal.reading.registration import Registration, _moved, pose_error
+
+    watermarker = meshseal.load()
+    original = watermarker.original(FIXTURES / "bunny.glb")
+    cameras, lights = sample_views(1, "seed", torch.Generator().manual_seed(0))
+    far = replace(cameras, eye=cameras.eye * (8.0 / cameras.eye.norm()))
+    grey = torch.tensor([[0.45, 0.5, 0.55]])
+    with torch.no_grad():
+        rendered = MeshRenderer()(original, far, lights, 256, 256, grey)
+    picture = (_quantise(rendered.image)[0].permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+    pixels = int((rendered.rgba[..., 3] >= 0.5).sum())
+    assert pixels < read.RIM_PIXELS_BELOW and read.object_side(rendered.rgba[0, ..., 3].numpy()) >= read.RIM_BELOW
+    handed = []
+    monkeypatch.setattr(registration, "register_with_masks", lambda *args, **kwargs: Registration(
+        handed[-1], torch.tensor([128.0, 128.0, 40.0]), 1.0))
+    rims = []
+    composited = registration.polish_composited
+    monkeypatch.setattr(registration, "polish_composited", lambda *args, **kwargs: rims.append(kwargs) or composited(*args, **kwargs))
+    error = lambda camera: pose_error(original, far, camera.to("cpu"), 256, 256)  # noqa: E731
+
+    def registered(move, rim_pixels=read.RIM_PIXELS_BELOW):
+        handed.append(_moved(far, torch.tensor(move), 256))
+        monkeypatch.setattr(read, "RIM_PIXELS_BELOW", rim_pixels)
+        return error(watermarker.read(picture, original, register=True).found)
+
+    for move in ([0.0, 0.15, 0.0, 0.2, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.25, 0.2]):
+        rims.clear()
+        assert error(_moved(far, torch.tensor(move), 256)) > 0.2
+        assert registered(move, rim_pixels=0) > 0.1 and not rims
+        assert registered(move) < 0.02 and rims[-1] == {"sigmas": (0.0,), "rounds": 1}
+    rims.clear()
+    registered([0.0] * 6, rim_pixels=pixels)  # as if the object were larger: the polish alone
+    assert not rims
+
+
 def test_the_polish_renders_a_halved_picture_as_it_was_made(monkeypatch):
     """A picture halved after it was rendered (bicubic, as image tools resize) averaged four rendered
     pixels into each of its own. The polish finds that (a render at twice the window's size resized to

@@ -19,7 +19,8 @@ MIN_OBJECT_PIXELS = 64  # fewer object pixels than this: nothing to read
 REGISTER_MIN_SIDE = 96  # an object whose box is narrower than this many pixels is registered on a copy enlarged ...
 REGISTER_MAX_FACTOR = 4  # ... by a whole factor, at most this one ...
 REGISTER_MAX_SIDE = 1024  # ... and to at most this many pixels a side
-RIM_BELOW = 48  # an object whose box is narrower than this many pixels, on a plain background, is polished on its rim too
+RIM_BELOW = 48  # an object whose box is narrower than this many pixels, on a plain background, is polished on its rim too ...
+RIM_PIXELS_BELOW = 5000  # ... and one of fewer pixels than this, more quickly: one round, on the sharp pixels alone
 
 
 @dataclass
@@ -194,9 +195,13 @@ class Reader:
                                     fov_y=fov_y, recut=recut, quick=quick)
         # a camera is the same for the picture at any size: its last hundredths of a pixel at the picture's own
         camera, own_mask = found.camera, torch.from_numpy(np.ascontiguousarray(mask))[None].float()
-        behind = self._plain_background(pixels, alpha) if object_side(mask) < RIM_BELOW else None
-        if behind is not None:  # a small object on a plain background: its rim says where it lies
-            camera = polish_composited(self.on_cpu(original), camera, tensor.cpu().clamp(0, 1), own_mask, behind)
+        small = object_side(mask) < RIM_BELOW
+        few = small or int(np.count_nonzero(mask > 0.5)) < RIM_PIXELS_BELOW
+        behind = self._plain_background(pixels, alpha) if few else None
+        if behind is not None:  # an object of few pixels on a plain background: its rim says where it lies
+            quick = {} if small else {"sigmas": (0.0,), "rounds": 1}
+            camera = polish_composited(self.on_cpu(original), camera, tensor.cpu().clamp(0, 1), own_mask, behind,
+                                       **quick)
         camera = polish(self.on_cpu(original), camera, tensor.cpu().clamp(0, 1), own_mask).to(self.device)
         # one tensor for this reading and the second look: the codec found once
         seen = self._expect_codecs(tensor.clamp(0, 1), codecs, luma)

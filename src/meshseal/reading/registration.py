@@ -1192,7 +1192,8 @@ def _gauss_newton(rendered, basis: torch.Tensor, target: torch.Tensor, iteration
 
 
 def polish_composited(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, mask: torch.Tensor,
-                      background: torch.Tensor) -> Cameras:
+                      background: torch.Tensor, sigmas: tuple[float, ...] = COMPOSITE_SIGMAS,
+                      rounds: int = COMPOSITE_ROUNDS) -> Cameras:
     """The registered `camera` of a small object's `picture` (1, 3, H, W) on a plain background
     (`background` (1, 3, H, W): the picture's own background, a colour or a ramp), brought to where the
     relit original, rendered as the reading renders it and composited over that background, best
@@ -1211,7 +1212,10 @@ def polish_composited(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
     with point samples and with the smaller render of `polish`'s footprints that fits `camera` best (a
     picture made smaller after it was rendered has another rim); the end the composite explains best is
     kept, a resized render's only where its misfit is under POLISH_FOOTPRINT_GAIN of the point samples',
-    and a move of more than COMPOSITE_MAX px is not taken. Nothing here looks at a key."""
+    and a move of more than COMPOSITE_MAX px is not taken. `sigmas` and `rounds` replace
+    COMPOSITE_SIGMAS and COMPOSITE_ROUNDS: with `(0.0,)` and 1 (what the reading runs on an object of a
+    few thousand pixels, `reading.read.RIM_PIXELS_BELOW`) one round from `camera` on the sharp pixels
+    alone, at each footprint. Nothing here looks at a key."""
     with torch.no_grad():
         start = camera
         # the window: the object's box with its antialiased rim and a pixel or two of background around
@@ -1229,10 +1233,13 @@ def polish_composited(mesh: MeshBatch, camera: Cameras, picture: torch.Tensor, m
         for factor in factors:
             # From the start as it is, and from where the blurred levels take it (a wider basin, but the
             # sharp pixels can disagree).
-            coarse = start
-            for sigma in COMPOSITE_SIGMAS:
-                coarse = _composite_level(mesh, coarse, first, crop, behind, sigma, factor)
-            for end in (_composite_level(mesh, start, first, crop, behind, 0.0, factor), coarse):
+            paths = [_composite_level(mesh, start, first, crop, behind, 0.0, factor, rounds)]
+            if any(sigmas):
+                coarse = start
+                for sigma in sigmas:
+                    coarse = _composite_level(mesh, coarse, first, crop, behind, sigma, factor, rounds)
+                paths.append(coarse)
+            for end in paths:
                 if pose_error(mesh, first.camera, first.seen_from(end), side, side) <= COMPOSITE_MAX:
                     gain = 1.0 if factor == 1.0 else POLISH_FOOTPRINT_GAIN  # a resized render must explain clearly better
                     ends.append(end)
@@ -1267,7 +1274,7 @@ def _composite_cost(mesh: MeshBatch, camera: Cameras, first: _Window, crop: torc
 
 
 def _composite_level(mesh: MeshBatch, camera: Cameras, first: _Window, crop: torch.Tensor, behind: torch.Tensor,
-                     sigma: float, factor: float = 1.0) -> Cameras:
+                     sigma: float, factor: float = 1.0, rounds: int = COMPOSITE_ROUNDS) -> Cameras:
     """`polish_composited`'s rounds on its window (`first`: the picture's `crop` and the background
     `behind` it, (1, 3, S, S) each), both sides blurred by `sigma` px (0: as they are), rendered at the
     footprint `factor` (`_composited`)."""
@@ -1277,7 +1284,7 @@ def _composite_level(mesh: MeshBatch, camera: Cameras, first: _Window, crop: tor
     side = first.side
     blur = (lambda x: x) if not sigma else (lambda x: gaussian_blur(x, sigma))  # noqa: E731
     target = blur(crop)[0].permute(1, 2, 0).reshape(-1).double()
-    for _ in range(COMPOSITE_ROUNDS):
+    for _ in range(rounds):
         window = replace(first, camera=first.seen_from(camera))
         relit, lights, fragments = fitted_light(mesh, crop, window.camera)
 
