@@ -481,8 +481,10 @@ def _lit_plane(strength: float):
 def test_the_light_is_fitted_on_the_pixels_below_white(monkeypatch):
     """A highlight that clipped says only that the light there is at least that strong: the first light fit
     leaves such pixels out, and the relit original then fits the rest of the picture as closely as when
-    nothing clipped; fitted as colours, they pull the light off and the prediction misses by several times
-    more. Where nothing clips, the fit is the one it always was."""
+    nothing clipped; fitted as colours, they pull the light off and the prediction misses by over twice
+    as much (2.3-2.6 times: how far the light is pulled depends on the order of the fit's sums, which
+    moves with the thread count and the CPU's vector kernels). Where nothing clips, the fit is the one
+    it always was."""
     import meshseal.reading.relight as relight
     from meshseal.reading.relight import NEAR_WHITE, relit_residual
 
@@ -498,7 +500,7 @@ def test_the_light_is_fitted_on_the_pixels_below_white(monkeypatch):
     taken_as_colours, _ = misfit(*_lit_plane(1.4))
     assert clean_share == 0.0 and same_clean == clean
     assert 0.3 < share < 0.7
-    assert clipped < 1.2 * clean and taken_as_colours > 2.5 * clipped
+    assert clipped < 1.2 * clean and taken_as_colours > 2.0 * clipped
 
 
 def test_a_picture_almost_all_white_keeps_every_pixel_for_its_light_fit():
