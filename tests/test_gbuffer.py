@@ -89,7 +89,7 @@ def test_a_vertex_mark_reshades_baked_views_as_the_renderer_does():
     uvs.requires_grad_(True)
     picture = composite_surface(texture, normals, uvs, batch["faces"], buffers, background)
     # the same framed view through the renderer: the framed clip coordinates, rasterized afresh
-    from meshseal.render import interpolate, rasterize, scatter_to_image
+    from meshseal.render import rasterize, scatter_to_image
     from meshseal.render.renderer import MeshBatch as Batch
     from meshseal.training.gbuffer import frame_clip
 

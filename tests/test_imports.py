@@ -4,7 +4,6 @@ explain the picture, without a key."""
 
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from meshseal.api import load as load_model

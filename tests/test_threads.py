@@ -3,6 +3,7 @@ user's settings change, and that torch and numba start with it."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import subprocess
@@ -93,7 +94,7 @@ def test_the_dataset_builders_workers_start_with_one_thread(monkeypatch):
     whatever the parent's count."""
     from concurrent.futures import ProcessPoolExecutor
 
-    import meshseal.data.build  # noqa: F401 (the package's `build` is the function; the module is in sys.modules)
+    importlib.import_module("meshseal.data.build")  # the package's `build` is the function; the module is in sys.modules
 
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
     monkeypatch.setenv("NUMBA_NUM_THREADS", "2")

@@ -7,7 +7,6 @@ import math
 import sys
 import time
 
-from ..threads import available_cores  # noqa: F401 (the subcommands import it from here)
 
 
 def vector3(text: str) -> tuple[float, float, float]:

@@ -12,8 +12,9 @@ from pathlib import Path
 
 from ..errors import MeshsealError
 from ..mesh_formats import file_type
-from ._common import (Stages, available_cores, positive_int, require_files, require_mesh, require_messages,
-                      require_model, require_picture, sampler)
+from ..threads import available_cores
+from ._common import (Stages, positive_int, require_files, require_mesh, require_messages, require_model,
+                      require_picture, sampler)
 
 
 def register(subparsers) -> None:

@@ -114,13 +114,12 @@ def enlarged(picture: torch.Tensor, masks: list[torch.Tensor], recut, factor: in
 
     big = F.interpolate(picture[None], scale_factor=factor, mode="bicubic", align_corners=False)[0].clamp(0, 1)
     grow = lambda m: m.repeat_interleave(factor, 0).repeat_interleave(factor, 1)  # noqa: E731
-    again = None
-    if recut is not None:
-        def again(silhouette: np.ndarray) -> np.ndarray:
-            small = silhouette.reshape(silhouette.shape[0] // factor, factor, -1, factor).mean((1, 3)) > 0.5
-            return np.repeat(np.repeat(recut(small), factor, 0), factor, 1)
+
+    def again(silhouette: np.ndarray) -> np.ndarray:
+        small = silhouette.reshape(silhouette.shape[0] // factor, factor, -1, factor).mean((1, 3)) > 0.5
+        return np.repeat(np.repeat(recut(small), factor, 0), factor, 1)
     grown = lambda m: grow(m) if torch.is_tensor(m) else (lambda: None if (g := m()) is None else grow(g))  # noqa: E731
-    return big, [grown(m) for m in masks], again
+    return big, [grown(m) for m in masks], (again if recut is not None else None)
 
 
 class Reader:
