@@ -8,7 +8,6 @@ import sys
 import time
 
 
-
 def vector3(text: str) -> tuple[float, float, float]:
     """'X,Y,Z' -> three finite floats (argparse type)."""
     parts = [p.strip() for p in text.replace(" ", ",").split(",") if p.strip()]
