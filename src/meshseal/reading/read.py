@@ -198,9 +198,9 @@ class Reader:
         few = small or int(np.count_nonzero(mask > 0.5)) < RIM_PIXELS_BELOW
         behind = self._plain_background(pixels, alpha) if few else None
         if behind is not None:  # an object of few pixels on a plain background: its rim says where it lies
-            quick = {} if small else {"sigmas": (0.0,), "rounds": 1}
+            rim = {} if small else {"sigmas": (0.0,), "rounds": 1}  # a few thousand pixels: one sharp round
             camera = polish_composited(self.on_cpu(original), camera, tensor.cpu().clamp(0, 1), own_mask, behind,
-                                       **quick)
+                                       **rim)
         camera = polish(self.on_cpu(original), camera, tensor.cpu().clamp(0, 1), own_mask).to(self.device)
         # one tensor for this reading and the second look: the codec found once
         seen = self._expect_codecs(tensor.clamp(0, 1), codecs, luma)
