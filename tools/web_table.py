@@ -5,7 +5,7 @@ assets meet on their way to the web; each row against its target, then every par
 
     python tools/web_table.py --data data --work DIR [--meshes 100] [--views 2] [--workers 2]
         [--slice 25] [--fixtures tests/fixtures] [--parts known,registered,fixtures_known,fixtures_registered]
-        [--model NAME] [--seed 0] [--out TABLE.md] [--dry-run]
+        [--model NAME] [--strength S|max] [--seed 0] [--out TABLE.md] [--dry-run]
 
 Each part runs as `meshseal eval ... --json` over slices of `--slice` test meshes (`--start`), one process
 a slice, `--workers` at a time, each pinned to one thread (`OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1`);
@@ -70,6 +70,8 @@ def command(args, part: dict, start: int, meshes: int | None) -> list[str]:
             "--size", "256", "--attacks", part["attacks"], "--seed", str(args.seed), "--json"]
     if args.model:
         line += ["--model", args.model]
+    if args.strength:
+        line += ["--strength", args.strength]
     if start:
         line += ["--start", str(start)]
     if meshes is not None:
@@ -167,6 +169,9 @@ def main() -> int:
     parser.add_argument("--parts", default=",".join(name for name, _ in COLUMNS),
                         help="comma-separated: " + ", ".join(name for name, _ in COLUMNS))
     parser.add_argument("--model", default=None)
+    parser.add_argument("--strength", default=None,
+                        help="mark as `meshseal embed --strength S` marks (a number, used as is; or 'max', the loudest "
+                             "within the FLIP budget and object PSNR 42 dB); default: as `embed` marks by default")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None, help="also write the tables here (Markdown)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
@@ -212,7 +217,8 @@ def main() -> int:
     write_atomically(args.work / "merged.json", json.dumps(merged, indent=1))
     commits = sorted({result.get("commit", "not recorded") for results in slices.values() for result in results})
     text = [f"<!-- python tools/web_table.py --data {args.data} --meshes {args.meshes} --views {args.views} "
-            f"--slice {args.slice} --seed {args.seed}{' --model ' + args.model if args.model else ''}; "
+            f"--slice {args.slice} --seed {args.seed}{' --model ' + args.model if args.model else ''}"
+            f"{' --strength ' + args.strength if args.strength else ''}; "
             f"slices run at {', '.join(commits)}; load {os.getloadavg()[0]:.2f} at the end -->", "", target_table(merged)]
     for name, title in COLUMNS:
         if name in merged and merged[name].get("by_kind"):

@@ -135,6 +135,36 @@ class Watermarker:
                   f"{max_flip}{floor}", file=sys.stderr)
         return marked, strength
 
+    def embed_loudest(self, mesh: Mesh, message=None, *, bits=None, key: str | bytes | None = None,
+                      max_flip: float = MAX_FLIP, min_psnr: float | None = None,
+                      views: int = BUDGET_VIEWS) -> tuple[Mesh, float]:
+        """`embed` at the loudest strength that the visibility budgets of the object's renders allow: a
+        mean FLIP over the object's pixels of at most `max_flip` and an object PSNR of at least
+        `min_psnr` (None: `evaluation.metrics.MIN_OBJECT_PSNR`), in renders from `views` seeded views
+        (256^2, our renderer, as `embed_within` measures), between `evaluation.metrics.MIN_STRENGTH` and
+        `MAX_STRENGTH` (`strength_filled`). A louder mark survives more of a picture's road to the web
+        (JPEG, WebP, resizing: docs/mark.md, "Strength against the web"); the texture's own PSNR then
+        falls under the default's 40 dB wherever the renders leave room. Returns the marked mesh and the
+        strength used."""
+        from .evaluation.metrics import MIN_OBJECT_PSNR, seed_renders, strength_filled, visibility
+
+        min_psnr = MIN_OBJECT_PSNR if min_psnr is None else min_psnr
+        if not 0.0 < max_flip <= 1.0:
+            raise MeshsealError(f"max_flip must be in (0, 1], got {max_flip}")
+        if views < 1:
+            raise MeshsealError("the loudest strength is measured in renders: give at least one view")
+        if not self.method.flip_budget:
+            raise MeshsealError(f"the loudest strength is for spread-spectrum models (their strength scales the mark), "
+                                f"not the {self.method.name} method")
+        seen, inside = seed_renders(mesh, views)  # the original, rendered once for every try
+        marked, strength, flip, psnr = strength_filled(
+            lambda at: self.embed(mesh, message, bits=bits, key=key, strength=at, warn=at == 1.0),
+            lambda marked: visibility(seen, seed_renders(marked, views)[0], inside), max_flip, min_psnr)
+        if flip > max_flip or psnr < min_psnr:
+            print(f"meshseal: warning: the mark's FLIP is {flip:.4f} and its object PSNR {psnr:.2f} dB at strength "
+                  f"{strength:.3g}, outside the budgets (FLIP {max_flip}, {min_psnr:g} dB)", file=sys.stderr)
+        return marked, strength
+
     def layout(self, mesh: Mesh, note: bool = False) -> Mesh:
         """`mesh` as this model marks it, and as detection takes the original (`Method.layout`)."""
         return self.method.layout(mesh, note)

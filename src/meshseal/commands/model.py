@@ -30,11 +30,13 @@ def register(subparsers) -> None:
     what.add_argument("--bits", help="raw bits to hide, no error correction (research): 0/1 of the model's length")
     _key_argument(embed)
     embed.add_argument("--model", default=None, help="shipped model name or .safetensors path (default: default)")
-    embed.add_argument("--strength", type=_strength_up_to(10.0), default=None,
+    embed.add_argument("--strength", type=_strength_up_to(10.0, loudest=True), default=None,
                        help="spread-spectrum models: the mark's amplitude, 1 being the default one; 2 is 6 dB "
                             "louder (more robust, more visible), 0.5 6 dB quieter. Not given: 1, lowered where "
                             "needed to keep the mark's FLIP within --max-flip. Given: used as is (add --max-flip to "
-                            "keep the budget too)")
+                            "keep the budget too). 'max': the loudest the renders allow (FLIP within --max-flip, "
+                            "object PSNR at least 42 dB, at most 4): more robust to JPEG, WebP and resizing, the "
+                            "texture's own PSNR under 40 dB")
     embed.add_argument("--max-flip", type=_budget, default=None,
                        help="spread-spectrum models: lower the strength until the mark's mean FLIP over the object "
                             "in the report's renders is at most this (default 0.03; none by default when --strength "
@@ -123,7 +125,8 @@ def register(subparsers) -> None:
                                "`meshseal embed` does (default 0.03; 0: strength 1 throughout)")
     evaluate.add_argument("--strength", type=_strength, default=None,
                           help="spread-spectrum models: mark each mesh at this strength, as `meshseal embed "
-                               "--strength` does: used as given, unless --max-flip is given too")
+                               "--strength` does: used as given, unless --max-flip is given too; 'max': the "
+                               "loudest within --max-flip and object PSNR 42 dB, as `embed --strength max` marks")
     evaluate.add_argument("--light-gain", type=_light_gain, default=1.0, metavar="G",
                           help="informed models: light the pictures G times as strongly as the sampler's lights, so "
                                "that highlights clip (the `clipped` kind of the by-kind table); the mark's FLIP budget "
@@ -202,20 +205,26 @@ def _asset_id(text: str) -> int:
     return value
 
 
-def _strength_up_to(limit: float):
-    """An argparse type: a strength in (0, limit] (`embed`: the API's own range, checked before it loads)."""
-    def parse(text: str) -> float:
+LOUDEST = "max"  # `--strength max`: the loudest strength within the budgets (`evaluation.metrics.LOUDEST`, not imported: no torch here)
+
+
+def _strength_up_to(limit: float, loudest: bool = False):
+    """An argparse type: a strength in (0, limit] (`embed`: the API's own range, checked before it loads),
+    or with `loudest` the word LOUDEST."""
+    def parse(text: str) -> float | str:
+        if loudest and text.strip().lower() == LOUDEST:
+            return LOUDEST
         try:
             value = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
+            raise argparse.ArgumentTypeError(f"expected a number{' or max' if loudest else ''}, got '{text}'") from None
         if not 0.0 < value <= limit:
             raise argparse.ArgumentTypeError(f"expected a strength in (0, {limit:g}], got {value}")
         return value
     return parse
 
 
-_strength = _strength_up_to(100.0)
+_strength = _strength_up_to(100.0, loudest=True)
 
 
 def _light_gain(text: str) -> float:
@@ -254,12 +263,16 @@ def run_embed(args) -> int:
             raise MeshsealError(f"{args.preview}: the preview would overwrite the output; choose another path")
     if args.max_flip is not None and args.max_flip > 0 and args.views == 0:
         raise MeshsealError("--max-flip measures the mark in renders: give --views 1 or more, or --max-flip 0")
+    loudest = args.strength == LOUDEST
+    if loudest and (args.views == 0 or args.max_flip == 0):
+        raise MeshsealError("--strength max fills the visibility budget measured in renders: give --views 1 or more "
+                            "and a --max-flip above 0")
     if args.bits is None:
         require_messages([args.message if args.id is None else args.id], args.model)
     stage = Stages()
     stage(f"loading the model and {args.input.name}")
     from ..api import load
-    from ..evaluation.metrics import MAX_FLIP
+    from ..evaluation.metrics import MAX_FLIP, MIN_OBJECT_PSNR
     from ..mesh import load as load_mesh, save
     from ..mesh.io import check_output
 
@@ -271,13 +284,19 @@ def run_embed(args) -> int:
     key = _key(args)
     base = watermarker.layout(mesh, note=True)  # what the mark is added to (palette faces charted), charted once
     message = {"bits": args.bits} if args.bits is not None else {"message": args.message if args.id is None else args.id}
-    asked = 1.0 if args.strength is None else args.strength
-    default_budget = args.strength is None and args.views > 0
+    asked = 1.0 if args.strength is None or loudest else args.strength
+    default_budget = (args.strength is None or loudest) and args.views > 0
     max_flip = args.max_flip if args.max_flip is not None else (MAX_FLIP if default_budget else 0.0)
     budget = max_flip > 0 and watermarker.method.flip_budget
+    if loudest and not watermarker.method.flip_budget:
+        raise MeshsealError(f"--strength max is for spread-spectrum models (their strength scales the mark), not "
+                            f"the {watermarker.method.name} method")
     stage(f"marking the texture{'s' if sum(m.texture is not None for m in base.materials) > 1 else ''}"
-          + (f" and keeping the mark's FLIP within {max_flip} ({args.views} renders)" if budget else ""))
-    if budget:
+          + (f" as loud as FLIP {max_flip} and object PSNR {MIN_OBJECT_PSNR:g} dB allow ({args.views} renders)" if loudest
+             else f" and keeping the mark's FLIP within {max_flip} ({args.views} renders)" if budget else ""))
+    if loudest:
+        marked, strength = watermarker.embed_loudest(base, **message, key=key, max_flip=max_flip, views=args.views)
+    elif budget:
         marked, strength = watermarker.embed_within(base, **message, key=key, strength=asked, max_flip=max_flip,
                                                     views=args.views)
     else:
@@ -289,7 +308,7 @@ def run_embed(args) -> int:
 
     report, renders = embed_report(base, marked, args.views)
     report |= {"model": watermarker.name, "n_bits": watermarker.n_bits, "strength": round(strength, 4),
-               "strength_asked": asked, "max_flip": max_flip if budget else None,
+               "strength_asked": LOUDEST if loudest else asked, "max_flip": max_flip if budget else None,
                "cells": watermarker.mark_grid(base), "keyed": key is not None, "output": str(args.output)}
     if args.preview is not None:
         stage(f"writing the preview {args.preview}")
@@ -305,7 +324,10 @@ def run_embed(args) -> int:
         shown = f" (over the texels the mesh shows: {shown} dB)" if shown is not None else ""
         print(f"texture PSNR {psnr_texture if psnr_texture is not None else 'n/a'} dB{shown}{cells}, normal change "
               f"{report['normal_angle_deg']:.3f} deg, uv shift {report['uv_shift_texels']:.3f} texels")
-        if strength != asked:
+        if loudest:
+            print(f"strength {strength:.3g}: the loudest within FLIP {max_flip} and object PSNR {MIN_OBJECT_PSNR:g} dB "
+                  "(--strength max)")
+        elif strength != asked:
             reached = report.get("flip_object") is None or report["flip_object"] <= max_flip
             goal = f"to keep the mark's FLIP at most {max_flip}" if reached else \
                 f"(the floor; the mark's FLIP stays above {max_flip})"
@@ -656,8 +678,10 @@ def run_eval(args) -> int:
         if not watermarker.informed:
             raise MeshsealError(f"--register is for informed models; '{watermarker.name}' reads pictures blind")
         log = None if args.json else print
-        default_budget = args.strength is None
+        default_budget = args.strength is None or args.strength == LOUDEST
         max_flip = (MAX_FLIP if default_budget else None) if args.max_flip is None else (args.max_flip or None)
+        if args.strength == LOUDEST and max_flip is None:
+            raise MeshsealError("--strength max fills the FLIP budget: give a --max-flip above 0")
         metrics = evaluate_registered(watermarker.model, dataset, args.meshes, args.seed, max(size, 64),
                                       args.sampler, log if args.register else None, views=args.views,
                                       register=args.register, max_flip=max_flip, attacks=attacks,

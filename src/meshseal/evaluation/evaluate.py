@@ -25,9 +25,11 @@ from .attacks import GEOMETRIC, cropped_camera
 from .attacks import apply as attack_picture
 from .metrics import (
     BUDGET_VIEWS,
+    LOUDEST,
     MAX_FLIP,
     seed_renders,
     shown_texture_psnr,
+    strength_filled,
     strength_within,
     visibility,
 )
@@ -182,9 +184,13 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
                 else:
                     seen_original, inside = seed_renders(MeshBatch.from_tensors(positions, normals, uvs, faces, texture),
                                                          BUDGET_VIEWS)
-                    flip = lambda t: visibility(seen_original, seed_renders(  # noqa: E731
-                        MeshBatch.from_tensors(positions, normals, uvs, faces, t), BUDGET_VIEWS)[0], inside)["flip_object"]
-                    texture_marked, used_strength, _ = strength_within(mark, flip, strength, max_flip)
+                    seen = lambda t: visibility(seen_original, seed_renders(  # noqa: E731
+                        MeshBatch.from_tensors(positions, normals, uvs, faces, t), BUDGET_VIEWS)[0], inside)
+                    if strength == LOUDEST:  # `embed --strength max`: the loudest within the budgets
+                        texture_marked, used_strength, _, _ = strength_filled(mark, seen, max_flip)
+                    else:
+                        texture_marked, used_strength, _ = strength_within(
+                            mark, lambda t: seen(t)["flip_object"], strength, max_flip)
             else:
                 normals_marked, uvs_marked, texture_marked = model.embed(positions, normals, uvs, texture, message)
             cameras, lights = sample_views(views, sampler, generator)
@@ -296,8 +302,12 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
               "seconds_per_picture": mean("seconds"), "n_meshes": count, "n_views": views, "size": size,
               "n_unreadable": sum(r["unreadable"] for r in rows), "light_gain": light_gain}
     if calibrated and max_flip is not None:
-        result |= {"max_flip": max_flip, "strength_mean": mean("strength"),
-                   "strength_lowered": float(np.mean([r["strength"] < strength for r in rows]))}
+        result |= {"max_flip": max_flip, "strength_mean": mean("strength")}
+        if strength == LOUDEST:
+            result |= {"strength_asked": LOUDEST,
+                       "strength_quantiles": [float(q) for q in np.quantile([r["strength"] for r in rows], [0.1, 0.5, 0.9])]}
+        else:
+            result["strength_lowered"] = float(np.mean([r["strength"] < strength for r in rows]))
     if calibrated and max_flip is None:
         result |= {"strength_mean": strength}
     if coded:
@@ -351,7 +361,7 @@ def evaluate_registered(model: WatermarkModel, dataset, n_meshes: int | None = N
             "bit_acc_known_camera", "tpr_known_camera", "exact_message_known_camera", "wrong_message_known_camera",
             "fpr_threshold", "by_uv_map",
             "tpr_message_named", "tpr_among_listed", "psnr_texture_shown", "psnr_object", "ssim_object", "flip_object", "flip_object_p95", "max_flip", "strength_mean",
-            "strength_lowered", "by_kind", "by_item",
+            "strength_lowered", "strength_asked", "strength_quantiles", "by_kind", "by_item",
             "seconds_per_picture", "n_meshes", "n_views", "size", "attacks", "light_gain")}
     return result
 

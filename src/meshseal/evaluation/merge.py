@@ -11,7 +11,7 @@ form "p95 at most X" that it meets is met).
 from __future__ import annotations
 
 # What names the run rather than measures it: the same in every slice, kept as it is.
-RUN_KEYS = ("model", "split", "sampler", "protocol", "texture_kinds", "size", "n_views", "light_gain", "max_flip",
+RUN_KEYS = ("model", "split", "sampler", "protocol", "texture_kinds", "size", "n_views", "light_gain", "max_flip", "strength_asked",
             "fpr_threshold")
 COUNT_KEYS = ("n_meshes",)
 UPPER_KEYS = ("flip_object_p95",)

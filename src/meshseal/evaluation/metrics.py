@@ -95,6 +95,53 @@ def strength_within(mark: Callable[[float], Any], flip: Callable[[Any], float], 
     return marked, strength, seen
 
 
+LOUDEST = "max"  # the strength asked as this word (`embed --strength max`): `strength_filled`'s
+MIN_OBJECT_PSNR = 42.0  # `strength_filled`'s second budget: the marked renders' PSNR over the object (issue #45's floor)
+MAX_STRENGTH = 4.0  # ... and its ceiling: texture PSNR about 28 dB over the shown texels, a mark plain in the texture itself
+FILL_AIM = 0.97  # ... which aims each marking at this share of the FLIP budget (FLIP's growth is an estimate)
+FILL_CLOSE = 1.05  # ... and stops once the next aim is within this factor of a strength already within both budgets
+
+
+def strength_filled(mark: Callable[[float], Any], measure: Callable[[Any], dict], max_flip: float,
+                    min_psnr: float = MIN_OBJECT_PSNR, start: float = 1.0, most: float = MAX_STRENGTH
+                    ) -> tuple[Any, float, float, float]:
+    """The loudest strength whose mark keeps both budgets of what a person sees: a mean FLIP over the
+    object of at most `max_flip` and an object PSNR of at least `min_psnr` (`measure(marked)`: the
+    `visibility` dict of the marked renders), the texture's own PSNR left to fall. `mark(s)` marks at
+    strength s. From `start`, each marking aims just under the nearer budget's edge: FLIP grows as a
+    power of the strength (0.7 near the default, docs/mark.md; from the second marking on, the power the
+    last two measured), the object's error energy as its square (20 log10 of the strength in dB). At
+    most `FLIP_ROUNDS` markings, between `MIN_STRENGTH` and `most`; where `start` is already over a
+    budget the strength goes down as `strength_within` lowers it. A FLIP of NaN (no view shows the
+    object's interior) keeps `start`. Returns (marked, strength, FLIP, object PSNR) of the loudest
+    marking within both budgets, else of the last one tried (over a budget even at the floor)."""
+    best = last = None
+    strength, points = start, []
+    for _ in range(FLIP_ROUNDS):
+        marked = mark(strength)
+        seen = measure(marked)
+        flip, psnr = seen["flip_object"], seen["psnr_object"]
+        last = (marked, strength, flip, psnr)
+        if not flip == flip:  # NaN: nothing seen, no budget to fill
+            return last
+        within = flip <= max_flip and psnr >= min_psnr
+        if within and (best is None or strength > best[1]):
+            best = last
+        points.append((math.log(strength), math.log(max(flip, 1e-9))))
+        power = 0.7
+        if len(points) >= 2 and abs(points[-1][0] - points[-2][0]) > 1e-6:
+            power = min(max((points[-1][1] - points[-2][1]) / (points[-1][0] - points[-2][0]), 0.3), 1.5)
+        aim = min(strength * (FILL_AIM * max_flip / max(flip, 1e-9)) ** (1 / power),
+                  strength * 10 ** ((psnr - min_psnr - 0.05) / 20))
+        aim = min(max(aim, MIN_STRENGTH), most)
+        if best is not None and aim <= best[1] * FILL_CLOSE:  # no louder strength left to try
+            break
+        if best is None and strength <= MIN_STRENGTH:  # over a budget at the floor
+            break
+        strength = aim
+    return best if best is not None else last
+
+
 def seed_renders(mesh, views: int, size: int = 256):
     """A mesh (`Mesh`, brought into the canonical frame, or a `MeshBatch` already in it) rendered by our
     renderer from `views` seeded views (seed 0) -> pictures (B, 3, H, W) and the object's interior
